@@ -1,0 +1,37 @@
+# The two commands of the README: `make demo` and `make test`. Both work on a fresh machine:
+# they install the system library open3d's wheel needs, create .venv and install jaxmap into it.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.jaxmap-installed
+DEMO_DATA ?= data/city_demo
+DEMO_RUN ?= runs/demo
+PYTEST_ARGS ?=
+
+.PHONY: demo test install sysdeps clean
+
+# open3d's Linux wheel links against libusb-1.0; Debian/Ubuntu images often lack it.
+sysdeps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  echo "[make] installing libusb-1.0-0 (needed by open3d)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $(STAMP)
+
+install: sysdeps $(STAMP)
+
+demo: install
+	$(VENV)/bin/jaxmap demo --data $(DEMO_DATA) --out $(DEMO_RUN)
+
+test: install
+	$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)
+
+clean:
+	rm -rf $(VENV) build *.egg-info data runs

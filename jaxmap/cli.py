@@ -1,0 +1,132 @@
+"""The `jaxmap` command. Each subcommand imports its implementation lazily, so `jaxmap --help`
+is instant and the mapping core never pulls open3d in unless a subcommand needs it."""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+
+
+def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = None) -> None:
+    p.add_argument("config", nargs="?" if default_config else None, default=default_config,
+                   help="YAML config (see configs/)")
+    p.add_argument("--data", help="sequence directory; overrides data.path")
+    p.add_argument("--out", help="run directory; overrides output")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key, e.g. --set train.iters=20 (repeatable)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jaxmap", description="Neural implicit 3D mapping in JAX.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("synth", help="write a synthetic sequence with exact ground truth")
+    p.add_argument("scene", choices=["city", "room"])
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--small", action="store_true", help="small preset (tests, quick looks)")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default per preset)")
+    p.add_argument("--noise", type=float, default=0.0, help="range noise std in metres")
+
+    p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
+    p.add_argument("mesh")
+    p.add_argument("--gt", required=True, help="sequence directory with gt_points.ply and scans")
+    p.add_argument("--threshold", type=float, default=0.1, help="F-score threshold in metres")
+    p.add_argument("--cull", type=float, default=0.3, help="cull GT farther than this from every scan point (m)")
+    p.add_argument("--radius", type=float, default=-1.0, help="keep GT within this range of a sensor position (m)")
+
+    p = sub.add_parser("baseline", help="classical baselines on the same data")
+    p.add_argument("method", choices=["tsdf"])
+    p.add_argument("data")
+    p.add_argument("--voxel", type=float, default=0.2, help="voxel size in metres")
+    p.add_argument("--out", required=True, help="output mesh (.ply)")
+    p.add_argument("--max-range", type=float, default=20.0, help="crop radius in metres")
+    p.add_argument("--res", type=float, default=None, help="marching-cubes resolution (default = voxel)")
+
+    p = sub.add_parser("map", help="N3 neural SDF mapping of a sequence")
+    _add_config_args(p)
+    p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run")
+    p.add_argument("--no-progress", action="store_true")
+
+    p = sub.add_parser("mesh", help="re-extract a mesh from a saved map")
+    p.add_argument("run", help="run directory")
+    p.add_argument("--res", type=float, default=None, help="marching-cubes resolution in metres")
+    p.add_argument("--out", default=None, help="output mesh (default RUN/mesh_<res>.ply)")
+
+    p = sub.add_parser("demo", help="synthetic city -> neural map -> mesh -> metrics")
+    p.add_argument("--data", default="data/city_demo")
+    p.add_argument("--out", default="runs/demo")
+
+    p = sub.add_parser("prior", help="train or evaluate the equivariant encoder/decoder prior")
+    p.add_argument("action", choices=["train", "eval"])
+    _add_config_args(p, default_config="configs/prior.yaml")
+
+    p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
+    p.add_argument("suite", choices=["n3"])
+    p.add_argument("--data", default="data/city_bench", help="where the benchmark scene is (made if missing)")
+    p.add_argument("--out", default="runs/bench_n3")
+    p.add_argument("--frames", type=int, default=None)
+    p.add_argument("--only", default=None, help="comma-separated subset of variants")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
+                        format="[jaxmap] %(message)s", stream=sys.stderr)
+    from jaxmap.errors import JaxmapError
+
+    try:
+        return _dispatch(args)
+    except JaxmapError as e:
+        print(f"jaxmap {args.command}: error: {e}", file=sys.stderr)
+        return 2
+
+
+def _dispatch(args) -> int:
+    if args.command == "synth":
+        if args.scene == "city":
+            from jaxmap.synth.city import generate_city as gen
+        else:
+            from jaxmap.synth.room import generate_room as gen
+        stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise)
+        print(json.dumps(stats))
+        return 0
+    if args.command == "eval":
+        from jaxmap.metrics import evaluate_mesh_file
+
+        m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
+                               cull_distance_m=args.cull, eval_radius_m=args.radius)
+        out = os.path.splitext(args.mesh)[0] + ".metrics.json"
+        with open(out, "w") as f:
+            json.dump(m, f)
+        print(json.dumps(m))
+        return 0
+    if args.command == "baseline":
+        from jaxmap.baselines.tsdf import tsdf_from_sequence
+
+        info = tsdf_from_sequence(args.data, voxel_m=args.voxel, out_mesh=args.out,
+                                  max_range_m=args.max_range, mesh_res_m=args.res)
+        print(json.dumps(info))
+        return 0
+    if args.command in ("map", "mesh", "demo"):
+        from jaxmap.n3 import run as n3run
+
+        return getattr(n3run, f"cli_{args.command}")(args)
+    if args.command == "prior":
+        from jaxmap.imt import prior
+
+        return prior.cli_train(args) if args.action == "train" else prior.cli_eval(args)
+    if args.command == "bench":
+        from jaxmap.bench import n3 as bench_n3
+
+        return bench_n3.main(args)
+    raise AssertionError(args.command)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

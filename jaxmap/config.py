@@ -1,0 +1,264 @@
+"""Typed, frozen configuration: YAML in, dataclasses out, unknown keys rejected.
+
+Every command of `jaxmap` reads one YAML file into a tree of frozen dataclasses. A key the
+dataclass does not declare is an error that names the file, the key and the closest valid key;
+`--set section.key=value` overrides any leaf; the resolved tree is written next to each run.
+
+The schema is generic: `load_config(path, schema=MapConfig)` works for any root dataclass
+whose fields are scalars, tuples of scalars or nested dataclasses.
+"""
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+import typing
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import yaml
+
+
+from jaxmap.errors import JaxmapError
+
+
+class ConfigError(JaxmapError, ValueError):
+    """A config file or override is wrong; the message says where and how to fix it."""
+
+
+# ---------------------------------------------------------------------------------------------
+# The N3 mapping config (jaxmap map). Names follow SHINE-Mapping / N3-Mapping where they exist.
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    path: str = "data/city"          # sequence directory (KITTI layout or depth layout)
+    kind: str = "kitti"              # "kitti" (LiDAR scans) or "depth" (depth images)
+    begin_frame: int = 0
+    end_frame: int = -1              # exclusive; -1 = to the end
+    every_frame: int = 1
+
+
+@dataclass(frozen=True)
+class PreprocessConfig:
+    min_range_m: float = 1.5         # points closer to the sensor are dropped (ego vehicle)
+    max_range_m: float = 20.0        # "pc_radius_m" of the anchors: crop radius
+    min_z_m: float = -10.0           # height crop in the sensor frame
+    max_z_m: float = 30.0
+    vox_down_m: float = 0.05         # voxel downsample before sampling (0 = off)
+    normal_knn: int = 20             # neighbours for PCA normals
+
+
+@dataclass(frozen=True)
+class SamplingConfig:
+    label_mode: str = "normal"       # "normal" (N3), "projective", "corrected" (ablations)
+    surface_sample_range_m: float = 0.3   # truncation band half-width (tr)
+    surface_sample_n: int = 3
+    sigma_m: float = 0.1             # std of the Gaussian offset inside the band
+    free_sample_n: int = 3
+    free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
+
+
+@dataclass(frozen=True)
+class GridConfig:
+    leaf_vox_size: float = 0.2
+    feature_levels: int = 3
+    feature_dim: int = 8
+    feature_std: float = 1e-4        # features initialised N(0, std)
+    hash_capacity: int = 1 << 20     # initial slots of the corner hash table (power of two)
+    max_load: float = 0.5            # grow (rehash, outside jit) past this load factor
+
+
+@dataclass(frozen=True)
+class DecoderConfig:
+    hidden_dim: int = 32
+    hidden_layers: int = 2
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    iters: int = 50                  # K iterations per frame
+    nv: int = 1024                   # voxels per iteration (hierarchical stage 1)
+    np_per_voxel: int = 8            # pairs per voxel (stage 2)
+    nt: int = 10                     # voxels with fewer pairs get np/3
+    hierarchical: bool = True        # False = uniform pairs (ablation)
+    batch_size: int = 8192           # pairs per iteration when hierarchical is False
+    lr: float = 0.01
+    sigma_sigmoid_m: float = 0.1     # beta of the BCE sigmoid
+    weight_e: float = 0.08           # eikonal weight
+    freeze_after_frame: int = 20     # decoder frozen after this many frames
+    reset_adam_each_frame: bool = False
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class WindowConfig:
+    mode: str = "voxel"              # "voxel" (N3), "replay" (all past), "keyframe" (last N frames)
+    keyframes: int = 5               # window length for mode "keyframe"
+    pairs_per_voxel: int = 64        # block capacity; oldest pairs overwritten
+    max_voxels: int = 1 << 17        # blocks in the store (grown outside jit when full)
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    resolution_m: float = 0.1
+    min_component_faces: int = 50    # drop connected components smaller than this
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    threshold_m: float = 0.1         # F-score threshold
+    cull_distance_m: float = 0.3     # GT points farther than this from every scan point are culled
+    eval_radius_m: float = -1.0      # >0: keep GT within this radius of some sensor position
+    n_samples: int = 2_000_000       # points sampled on the predicted mesh
+
+
+@dataclass(frozen=True)
+class MapConfig:
+    """Root config of `jaxmap map` (N3-Mapping)."""
+
+    data: DataConfig = field(default_factory=DataConfig)
+    preprocess: PreprocessConfig = field(default_factory=PreprocessConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    grid: GridConfig = field(default_factory=GridConfig)
+    decoder: DecoderConfig = field(default_factory=DecoderConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    window: WindowConfig = field(default_factory=WindowConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    output: str = "runs/map"
+
+
+# ---------------------------------------------------------------------------------------------
+# Generic loading, validation and overrides.
+# ---------------------------------------------------------------------------------------------
+
+
+def _closest(name: str, valid: Sequence[str]) -> str:
+    match = difflib.get_close_matches(name, list(valid), n=1, cutoff=0.0)
+    return match[0] if match else ""
+
+
+def _coerce(value: Any, typ: Any, where: str) -> Any:
+    """Check/convert a YAML scalar to the declared field type (int->float is allowed)."""
+    origin = typing.get_origin(typ)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        (elem, *_rest) = typing.get_args(typ)
+        return tuple(_coerce(v, elem, where) for v in value)
+    if typ is bool:
+        if isinstance(value, bool):
+            return value
+        if isinstance(value, str) and value.lower() in ("true", "false", "yes", "no", "1", "0"):
+            return value.lower() in ("true", "yes", "1")
+        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+    if typ is int:
+        if isinstance(value, bool) or not isinstance(value, (int, str)):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        try:
+            return int(value)
+        except ValueError:
+            raise ConfigError(f"{where}: expected an integer, got {value!r}") from None
+    if typ is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+    if typ is str:
+        if not isinstance(value, (str, int, float)):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix: str = "") -> Any:
+    """Build dataclass `schema` from a nested dict, rejecting unknown keys with a suggestion."""
+    data = {} if data is None else data
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: section '{prefix or '<root>'}' must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(schema)
+    fields = {f.name: f for f in dataclasses.fields(schema)}
+    kwargs = {}
+    for key, value in data.items():
+        full = f"{prefix}{key}"
+        if key not in fields:
+            valid = [f"{prefix}{k}" for k in fields]
+            raise ConfigError(
+                f"{source}: unknown config key '{full}'; did you mean '{_closest(full, valid)}'? "
+                f"Valid keys here: {', '.join(valid)}"
+            )
+        typ = hints[key]
+        if dataclasses.is_dataclass(typ):
+            kwargs[key] = from_dict(typ, value, source, prefix=f"{full}.")
+        else:
+            kwargs[key] = _coerce(value, typ, f"{source}: {full}")
+    return schema(**kwargs)
+
+
+def to_dict(cfg: Any) -> dict:
+    """Dataclass tree -> plain nested dict (tuples as lists), for YAML/JSON."""
+    out = {}
+    for f in dataclasses.fields(cfg):
+        v = getattr(cfg, f.name)
+        if dataclasses.is_dataclass(v):
+            out[f.name] = to_dict(v)
+        elif isinstance(v, tuple):
+            out[f.name] = list(v)
+        else:
+            out[f.name] = v
+    return out
+
+
+def apply_overrides(cfg: Any, overrides: Sequence[str], source: str = "--set") -> Any:
+    """Apply `section.key=value` strings (value parsed as YAML) to a dataclass tree."""
+    if not overrides:
+        return cfg
+    tree = to_dict(cfg)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError(f"{source} '{item}': expected section.key=value, e.g. train.iters=20")
+        path, raw = item.split("=", 1)
+        keys = path.strip().split(".")
+        node = tree
+        for depth, k in enumerate(keys):
+            valid = list(node.keys()) if isinstance(node, dict) else []
+            if k not in valid:
+                here = ".".join(keys[:depth])
+                full_valid = [f"{here}.{v}" if here else v for v in valid]
+                raise ConfigError(
+                    f"{source} '{item}': unknown config key '{path}'; did you mean "
+                    f"'{_closest(path, full_valid)}'?"
+                )
+            if depth == len(keys) - 1:
+                if isinstance(node[k], dict):
+                    raise ConfigError(f"{source} '{item}': '{path}' is a section, name one of its keys")
+                node[k] = yaml.safe_load(raw)
+            else:
+                node = node[k]
+    return from_dict(type(cfg), tree, source)
+
+
+def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = (), schema: type = MapConfig) -> Any:
+    """Load a YAML config file into `schema`, then apply overrides. `path=None` gives defaults."""
+    if path is None:
+        return apply_overrides(schema(), overrides)
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise ConfigError(f"config file not found: {path} (the shipped ones are in configs/)")
+    with open(path) as f:
+        try:
+            data = yaml.safe_load(f)
+        except yaml.YAMLError as e:
+            raise ConfigError(f"{path}: not valid YAML: {e}") from None
+    cfg = from_dict(schema, data, source=path)
+    return apply_overrides(cfg, overrides)
+
+
+def save_config(cfg: Any, path: str | os.PathLike) -> None:
+    """Write the resolved config as YAML (what the run actually used)."""
+    with open(path, "w") as f:
+        yaml.safe_dump(to_dict(cfg), f, sort_keys=False)
