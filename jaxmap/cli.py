@@ -10,7 +10,7 @@ import sys
 
 
 def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = None) -> None:
-    p.add_argument("config", nargs="?" if default_config else None, default=default_config,
+    p.add_argument("config", nargs="?" if default_config is not None else None, default=default_config or None,
                    help="YAML config (see configs/)")
     p.add_argument("--data", help="sequence directory; overrides data.path")
     p.add_argument("--out", help="run directory; overrides output")
@@ -47,7 +47,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--res", type=float, default=None, help="marching-cubes resolution (default = voxel)")
 
     p = sub.add_parser("map", help="N3 neural SDF mapping of a sequence")
-    _add_config_args(p)
+    _add_config_args(p, default_config="")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run")
     p.add_argument("--no-progress", action="store_true")
 

@@ -57,6 +57,7 @@ class SamplingConfig:
     surface_sample_n: int = 3
     sigma_m: float = 0.1             # std of the Gaussian offset inside the band
     free_sample_n: int = 3
+    free_band_m: float = 1.0         # free samples lie in the last free_band_m before the band
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
 
 
@@ -66,7 +67,6 @@ class GridConfig:
     feature_levels: int = 3
     feature_dim: int = 8
     feature_std: float = 1e-4        # features initialised N(0, std)
-    hash_capacity: int = 1 << 20     # initial slots of the corner hash table (power of two)
     max_load: float = 0.5            # grow (rehash, outside jit) past this load factor
 
 
@@ -97,7 +97,7 @@ class WindowConfig:
     mode: str = "voxel"              # "voxel" (N3), "replay" (all past), "keyframe" (last N frames)
     keyframes: int = 5               # window length for mode "keyframe"
     pairs_per_voxel: int = 64        # block capacity; oldest pairs overwritten
-    max_voxels: int = 1 << 17        # blocks in the store (grown outside jit when full)
+    initial_blocks: int = 1 << 14    # blocks in the store at start (grown outside jit when full)
 
 
 @dataclass(frozen=True)
@@ -128,6 +128,7 @@ class MapConfig:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: str = "runs/map"
+    checkpoint_every: int = 10       # frames between checkpoints (also written at the end and on Ctrl-C)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,0 +1,70 @@
+"""Training-pair sampling: near-surface samples with SDF labels, and free-space samples.
+
+Label modes (N3 paper, section III-B1; `sampling.label_mode`):
+  normal      x = p + d n, label d            (non-projective; exact on planes)          [N3 default]
+  projective  x = p - d r, label d            (distance along the ray; over-estimates at grazing angles)
+  corrected   x = p - d r, label d |cos(r,n)| (projective distance projected on the normal)
+with d ~ N(0, sigma) clipped to [-tr, tr], n the unit normal oriented towards the sensor, r the unit
+ray direction sensor -> p. Signs: the SDF is positive in front of the surface (towards the sensor).
+
+Free-space samples lie on the ray between the sensor and the truncation band, in the last
+`free_band_m` metres before it (samples far from every surface land in voxels without features and
+carry no feature gradient); their label is the truncation distance.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+LABEL_MODES = ("normal", "projective", "corrected")
+
+
+class Samples(NamedTuple):
+    """A frame's training pairs, flattened: S = N * (n_surface + n_free)."""
+
+    points: jax.Array    # [S,3] float32, map frame
+    labels: jax.Array    # [S] float32, metres
+    surface: jax.Array   # [S] bool, inside the truncation band (gets the eikonal term)
+    valid: jax.Array     # [S] bool, False for padding
+
+
+def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, trunc: float, sigma: float,
+                 n_surface: int, n_free: int, free_band: float, free_label: float) -> Samples:
+    """Sample training pairs for one frame (jit-able; everything after `origin_m` is static).
+
+    points_m: [N,3] float32 map frame; normals_m: [N,3] unit, oriented towards the sensor;
+    valid: [N] bool (padding mask); origin_m: [3] sensor position in the map frame.
+    """
+    if label_mode not in LABEL_MODES:
+        raise ValueError(f"sampling.label_mode must be one of {LABEL_MODES}, got {label_mode!r}")
+    k_surf, k_free = jax.random.split(key)
+    n = points_m.shape[0]
+    ray = points_m - origin_m
+    dist = jnp.linalg.norm(ray, axis=-1, keepdims=True)       # [N,1]
+    r = ray / jnp.maximum(dist, 1e-6)                          # [N,3] unit, sensor -> p
+
+    d = jnp.clip(sigma * jax.random.normal(k_surf, (n, n_surface)), -trunc, trunc)   # [N,ns]
+    if label_mode == "normal":
+        xs = points_m[:, None] + d[..., None] * normals_m[:, None]
+        ls = d
+    else:
+        xs = points_m[:, None] - d[..., None] * r[:, None]
+        ls = d
+        if label_mode == "corrected":
+            ls = d * jnp.abs(jnp.sum(r * normals_m, axis=-1, keepdims=True))
+
+    # Free space: uniform in [dist - trunc - free_band, dist - trunc], never behind the sensor.
+    u = jax.random.uniform(k_free, (n, n_free))
+    far = jnp.maximum(dist - trunc, 0.0)
+    near = jnp.maximum(far - free_band, 0.0)
+    t = near + u * (far - near)                                # [N,nf]
+    xf = origin_m + t[..., None] * r[:, None]
+    lf = jnp.full((n, n_free), free_label, jnp.float32)
+
+    pts = jnp.concatenate([xs, xf], axis=1).reshape(-1, 3)
+    labels = jnp.concatenate([ls, lf], axis=1).reshape(-1)
+    surface = jnp.concatenate([jnp.ones((n, n_surface), bool), jnp.zeros((n, n_free), bool)], 1).reshape(-1)
+    v = jnp.repeat(valid, n_surface + n_free)
+    return Samples(pts.astype(jnp.float32), labels.astype(jnp.float32), surface, v)

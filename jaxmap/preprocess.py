@@ -1,0 +1,77 @@
+"""Scan preprocessing: range/height crop, voxel downsample, PCA normals oriented to the sensor.
+
+Pure numpy + scipy (no open3d), so the mapping core runs on machines that only have JAX.
+All functions take and return sensor-frame arrays; the mapper moves them to the map frame.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def crop(points_s: np.ndarray, min_range: float, max_range: float, min_z: float, max_z: float) -> np.ndarray:
+    """Keep points with min_range <= |p| <= max_range and min_z <= z <= max_z.
+
+    points_s: [N,3] float32, sensor frame -> [M,3] float32.
+    """
+    r = np.linalg.norm(points_s, axis=1)
+    keep = (r >= min_range) & (r <= max_range) & (points_s[:, 2] >= min_z) & (points_s[:, 2] <= max_z)
+    return points_s[keep]
+
+
+def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """One point per voxel of side `voxel`: the point closest to the voxel's mean (deterministic).
+
+    points: [N,3] float32 -> [M,3] float32, M <= N; voxel <= 0 returns the input.
+    """
+    if voxel <= 0 or len(points) == 0:
+        return points
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    means = np.zeros((len(counts), 3))
+    np.add.at(means, inverse, points)
+    means /= counts[:, None]
+    d = np.linalg.norm(points - means[inverse], axis=1)
+    # Per voxel, the index of the smallest distance: sort by (voxel, distance), take firsts.
+    order = np.lexsort((d, inverse))
+    first = np.ones(len(order), bool)
+    first[1:] = inverse[order][1:] != inverse[order][:-1]
+    return points[np.sort(order[first])]
+
+
+def estimate_normals(points_s: np.ndarray, k: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """PCA normals from the k nearest neighbours, oriented towards the sensor at the origin.
+
+    points_s: [N,3] float32, sensor frame.
+    Returns (normals [N,3] float32 unit, planarity [N] float32 in [0,1]: 1 - l_min / l_mid,
+    low where the neighbourhood is degenerate, e.g. a single scan line).
+    """
+    n = len(points_s)
+    if n == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0,), np.float32)
+    k = int(min(k, n))
+    tree = cKDTree(points_s)
+    _, idx = tree.query(points_s, k=k, workers=-1)
+    idx = idx.reshape(n, k)
+    nb = points_s[idx].astype(np.float64)                     # [N,k,3]
+    centred = nb - nb.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k   # [N,3,3]
+    evals, evecs = np.linalg.eigh(cov)                        # ascending
+    normals = evecs[:, :, 0]
+    # Orient towards the sensor (origin of the sensor frame): n . (0 - p) > 0.
+    flip = np.einsum("ni,ni->n", normals, -points_s) < 0
+    normals[flip] = -normals[flip]
+    planarity = 1.0 - evals[:, 0] / np.maximum(evals[:, 1], 1e-12)
+    return normals.astype(np.float32), planarity.astype(np.float32)
+
+
+def preprocess_scan(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """Crop, downsample and estimate normals. cfg: a PreprocessConfig.
+
+    points_s: [N,3] float32 sensor frame -> (points [M,3] float32, normals [M,3] float32), sensor frame.
+    """
+    pts = crop(points_s, cfg.min_range_m, cfg.max_range_m, cfg.min_z_m, cfg.max_z_m)
+    pts = voxel_downsample(pts, cfg.vox_down_m)
+    normals, _ = estimate_normals(pts, cfg.normal_knn)
+    return pts.astype(np.float32), normals

@@ -1,0 +1,55 @@
+"""Config loading: typed, unknown keys rejected with a suggestion, overrides, round trip."""
+import pytest
+
+from jaxmap.config import ConfigError, MapConfig, load_config, save_config
+
+
+def test_shipped_city_config_loads_and_matches_paper_defaults():
+    cfg = load_config("configs/city.yaml")
+    assert cfg.grid.leaf_vox_size == 0.2 and cfg.grid.feature_levels == 3 and cfg.grid.feature_dim == 8
+    assert cfg.train.iters == 50 and cfg.train.nv * cfg.train.np_per_voxel == 8192
+    assert cfg.sampling.label_mode == "normal"
+
+
+def test_unknown_key_names_file_key_and_suggestion(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("train:\n  itters: 3\n")
+    with pytest.raises(ConfigError) as e:
+        load_config(p)
+    msg = str(e.value)
+    assert str(p) in msg and "train.itters" in msg and "train.iters" in msg
+
+
+def test_unknown_section_is_rejected(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("trian:\n  iters: 3\n")
+    with pytest.raises(ConfigError, match="did you mean 'train'"):
+        load_config(p)
+
+
+def test_wrong_type_is_rejected(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("train:\n  iters: many\n")
+    with pytest.raises(ConfigError, match="train.iters"):
+        load_config(p)
+
+
+def test_overrides_apply_and_are_checked():
+    cfg = load_config(None, ["train.iters=7", "sampling.label_mode=projective", "grid.leaf_vox_size=0.1"])
+    assert cfg.train.iters == 7 and cfg.sampling.label_mode == "projective" and cfg.grid.leaf_vox_size == 0.1
+    with pytest.raises(ConfigError, match="train.iters"):
+        load_config(None, ["train.iter=7"])
+    with pytest.raises(ConfigError, match="section.key=value"):
+        load_config(None, ["train.iters"])
+
+
+def test_missing_file_is_clear(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
+
+
+def test_resolved_config_round_trips(tmp_path):
+    cfg = load_config("configs/city.yaml", ["train.iters=3"])
+    save_config(cfg, tmp_path / "c.yaml")
+    assert load_config(tmp_path / "c.yaml") == cfg
+    assert load_config(None) == MapConfig()
