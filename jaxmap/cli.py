@@ -30,6 +30,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--small", action="store_true", help="small preset (tests, quick looks)")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default per preset)")
     p.add_argument("--noise", type=float, default=0.0, help="range noise std in metres")
+    p.add_argument("--pedestrians", action="store_true", help="city: add moving pedestrians (not in the GT)")
 
     p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
     p.add_argument("mesh")
@@ -93,7 +94,10 @@ def _dispatch(args) -> int:
             from jaxmap.synth.city import generate_city as gen
         else:
             from jaxmap.synth.room import generate_room as gen
-        stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise)
+        kw = {"pedestrians": True} if args.pedestrians else {}
+        if args.pedestrians and args.scene != "city":
+            raise SystemExit("jaxmap synth: --pedestrians is for the city scene")
+        stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
         print(json.dumps(stats))
         return 0
     if args.command == "eval":

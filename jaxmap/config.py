@@ -34,7 +34,7 @@ class ConfigError(JaxmapError, ValueError):
 @dataclass(frozen=True)
 class DataConfig:
     path: str = "data/city"          # sequence directory (KITTI layout or depth layout)
-    kind: str = "kitti"              # "kitti" (LiDAR scans) or "depth" (depth images)
+    kind: str = "auto"               # "auto", "kitti" (LiDAR scans) or "depth" (depth images)
     begin_frame: int = 0
     end_frame: int = -1              # exclusive; -1 = to the end
     every_frame: int = 1

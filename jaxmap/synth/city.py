@@ -1,0 +1,620 @@
+"""A MaiCity-like synthetic street scene with a ray-cast LiDAR and exact ground truth.
+
+The scene (world frame: z up, road surface at z = 0) is a grid of streets around city blocks raised by a
+curb; blocks hold buildings (flat box facades, rounded and cylindrical facades), a park lot behind a
+fence of thin slats and one behind a thin railing; sidewalks hold trees (trunk + ellipsoid crown),
+poles and traffic signs (thin plates); cars are parked along the curbs. Optional pedestrians (boxes)
+walk around the central block and are NOT part of the ground truth.
+
+A vehicle drives one closed loop around the central block (right lane, counter-clockwise) with a
+LiDAR at 1.73 m. Written in the KITTI odometry layout, with the SHINE/N3 pose convention:
+
+    velodyne/000000.bin ...  float32 x,y,z,intensity in the LiDAR frame (x forward, y left, z up)
+    calib.txt                "Tr:" = T_cam_velo (KITTI's typical velo->cam matrix, orthonormalised)
+    poses.txt                camera-frame poses P_i, such that inv(Tr) @ P_i @ Tr = T_world_lidar_i
+    gt_mesh.ply              triangle mesh of the static scene (world frame)
+    gt_points.ply            dense uniform samples of it (+ normals), hidden surfaces removed
+    meta.json                stats and parameters (deterministic: no timings)
+    pedestrians.json         (only with pedestrians=True) per-frame pedestrian boxes
+
+Everything is deterministic from `seed`.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from jaxmap.io.kitti import camera_poses_from_lidar, write_calib, write_poses
+from jaxmap.io.pointcloud import write_mesh_ply, write_points_ply, write_scan_bin
+from jaxmap.synth import common as C
+
+log = logging.getLogger("jaxmap")
+
+# KITTI odometry sequence 00 velo->cam Tr (before orthonormalisation).
+KITTI_TR = np.array([
+    [4.276802385584e-04, -9.999672484946e-01, -8.084491683471e-03, -1.198459927713e-02],
+    [-7.210626507497e-03, 8.081198471645e-03, -9.999413164504e-01, -5.403984729748e-02],
+    [9.999738645903e-01, 4.859485810390e-04, -7.206933692422e-03, -2.921968648686e-01],
+    [0.0, 0.0, 0.0, 1.0]])
+
+
+def kitti_tr() -> np.ndarray:
+    """KITTI's typical T_cam_velo with its rotation orthonormalised (SVD), [4,4] float64."""
+    U, _, Vt = np.linalg.svd(KITTI_TR[:3, :3])
+    T = KITTI_TR.copy()
+    T[:3, :3] = U @ Vt
+    return T
+
+
+@dataclass(frozen=True)
+class CityPreset:
+    half_extent: float      # scene spans [-h, h]^2 (m)
+    street_x: float         # N-S streets at x = +-street_x (centre lines)
+    street_y: float         # E-W streets at y = +-street_y
+    road_width: float
+    sidewalk: float         # sidewalk width inside each block (m)
+    lane_offset: float      # vehicle path offset from the street centre line, outward (right lane)
+    corner_radius: float
+    frames: int
+    beams: int
+    azimuth_steps: int
+    gt_density: float       # GT samples per m^2
+    tree_from_curb: float
+    ped_from_curb: float
+    pedestrians: int
+
+
+DEFAULT = CityPreset(half_extent=50.0, street_x=20.0, street_y=14.0, road_width=8.0, sidewalk=4.0,
+                     lane_offset=0.5, corner_radius=5.0, frames=130, beams=64, azimuth_steps=1024,
+                     gt_density=100.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8)
+SMALL = CityPreset(half_extent=20.0, street_x=10.0, street_y=8.0, road_width=7.0, sidewalk=2.0,
+                   lane_offset=0.5, corner_radius=3.0, frames=15, beams=32, azimuth_steps=512,
+                   gt_density=40.0, tree_from_curb=0.9, ped_from_curb=1.5, pedestrians=4)
+
+CURB_H = 0.15            # sidewalk / block height above the road
+SENSOR_H = 1.73          # LiDAR height above the road (KITTI)
+ELEVATION_DEG = (-25.0, 2.0)
+MAX_RANGE = 50.0
+TILE = 2.0               # ground and curb faces are split into tiles of at most this size (m)
+
+
+# ------------------------------------------------------------------------------------------------
+# the closed vehicle path: a rounded rectangle, counter-clockwise, parametrised by arc length
+# ------------------------------------------------------------------------------------------------
+
+
+class LoopPath:
+    """Rounded rectangle |x| <= hx, |y| <= hy with corner radius r; starts at (0, -hy) heading +x."""
+
+    def __init__(self, hx: float, hy: float, r: float):
+        self.hx, self.hy, self.r = hx, hy, r
+        sx, sy = 2 * (hx - r), 2 * (hy - r)
+        arc = np.pi * r / 2
+        # segments: (kind, length, data)
+        self.segs = [
+            ("line", sx / 2, (np.array([0.0, -hy]), 0.0)),
+            ("arc", arc, (np.array([hx - r, -hy + r]), -np.pi / 2)),
+            ("line", sy, (np.array([hx, -hy + r]), np.pi / 2)),
+            ("arc", arc, (np.array([hx - r, hy - r]), 0.0)),
+            ("line", sx, (np.array([hx - r, hy]), np.pi)),
+            ("arc", arc, (np.array([-hx + r, hy - r]), np.pi / 2)),
+            ("line", sy, (np.array([-hx, hy - r]), -np.pi / 2)),
+            ("arc", arc, (np.array([-hx + r, -hy + r]), np.pi)),
+            ("line", sx / 2, (np.array([-hx + r, -hy]), 0.0)),
+        ]
+        self.length = float(sum(s[1] for s in self.segs))
+
+    def at(self, s: float):
+        """(x, y, yaw) at arc length s (mod the loop length)."""
+        s = float(s) % self.length
+        for kind, length, data in self.segs:
+            if s <= length + 1e-12:
+                if kind == "line":
+                    p0, yaw = data
+                    return p0[0] + s * np.cos(yaw), p0[1] + s * np.sin(yaw), yaw
+                c, a0 = data
+                a = a0 + s / self.r
+                return c[0] + self.r * np.cos(a), c[1] + self.r * np.sin(a), a + np.pi / 2
+            s -= length
+        raise AssertionError  # pragma: no cover
+
+    def samples(self, step: float = 0.25) -> np.ndarray:
+        n = int(np.ceil(self.length / step))
+        return np.array([self.at(i * self.length / n)[:2] for i in range(n)])
+
+
+def lidar_poses(path: LoopPath, n_frames: int) -> np.ndarray:
+    """[n,4,4] T_world_lidar evenly spaced over one loop (frame n would coincide with frame 0)."""
+    poses = []
+    for i in range(n_frames):
+        s = i * path.length / n_frames
+        x, y, yaw = path.at(s)
+        pitch = 0.005 * np.sin(2 * np.pi * s / 23.0)  # a gently rocking vehicle (radians)
+        roll = 0.004 * np.sin(2 * np.pi * s / 17.0)
+        cy, sy_ = np.cos(yaw), np.sin(yaw)
+        cp, sp = np.cos(pitch), np.sin(pitch)
+        cr, sr = np.cos(roll), np.sin(roll)
+        Rz = np.array([[cy, -sy_, 0], [sy_, cy, 0], [0, 0, 1]])
+        Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+        Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+        T = np.eye(4)
+        T[:3, :3] = Rz @ Ry @ Rx
+        T[:3, 3] = (x, y, SENSOR_H)
+        poses.append(T)
+    return np.stack(poses)
+
+
+def beam_directions(beams: int, azimuth_steps: int) -> np.ndarray:
+    """Unit ray directions in the LiDAR frame, beam-major: [beams*azimuth_steps, 3] float64."""
+    el = np.deg2rad(np.linspace(ELEVATION_DEG[0], ELEVATION_DEG[1], beams))
+    az = 2 * np.pi * np.arange(azimuth_steps) / azimuth_steps
+    el, az = np.meshgrid(el, az, indexing="ij")
+    d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# the static scene
+# ------------------------------------------------------------------------------------------------
+
+
+class _Scene:
+    """Collects object meshes with ids and the 'inside' tests used to drop hidden GT samples."""
+
+    def __init__(self):
+        self.parts: list = []      # (vertices, faces)
+        self.kinds: list[str] = []
+        self.hidden: list = []     # (object id whose samples are tested, inside(points) -> mask)
+
+    def add(self, mesh, kind: str) -> int:
+        self.parts.append(mesh)
+        self.kinds.append(kind)
+        return len(self.parts) - 1
+
+    def build(self):
+        mb = C.MeshBuilder()
+        obj = []
+        for i, m in enumerate(self.parts):
+            mb.add(m)
+            obj.append(np.full(len(m[1]), i, np.int32))
+        v, f = mb.build()
+        return v, f, np.concatenate(obj)
+
+
+def _inside_convex(poly: np.ndarray, z0: float, z1: float, eps: float = 1e-6):
+    """inside(points) for a vertical prism over a CCW convex polygon (strictly inside by eps)."""
+    poly = np.asarray(poly, dtype=np.float64)
+    if C._polygon_area2(poly) < 0:
+        poly = poly[::-1]
+    a = poly
+    b = np.roll(poly, -1, axis=0)
+
+    lo, hi = poly.min(0), poly.max(0)
+
+    def inside(p):
+        m = ((p[:, 2] > z0 - eps) & (p[:, 2] < z1 - eps) & (p[:, 0] > lo[0]) & (p[:, 0] < hi[0])
+             & (p[:, 1] > lo[1]) & (p[:, 1] < hi[1]))
+        idx = np.flatnonzero(m)
+        q = p[idx]
+        ok = np.ones(len(idx), bool)
+        for ai, bi in zip(a, b):
+            e = bi - ai
+            ok &= e[0] * (q[:, 1] - ai[1]) - e[1] * (q[:, 0] - ai[0]) > eps
+        m[idx] = ok
+        return m
+    return inside
+
+
+def _inside_ellipsoid(center, radii, shrink: float = 0.98):
+    c = np.asarray(center)
+    r = np.asarray(radii) * shrink  # the icosphere's facets lie slightly inside the ellipsoid
+
+    def inside(p):
+        return (((p - c) / r) ** 2).sum(1) < 1.0
+    return inside
+
+
+def _intervals(P: CityPreset):
+    h, w = P.half_extent, P.road_width / 2
+    xb = [-h, -P.street_x - w, -P.street_x + w, P.street_x - w, P.street_x + w, h]
+    yb = [-h, -P.street_y - w, -P.street_y + w, P.street_y - w, P.street_y + w, h]
+    return xb, yb
+
+
+def _ground(P: CityPreset):
+    """Road cells at z = 0, block cells raised to CURB_H, vertical curb faces between them."""
+    xb, yb = _intervals(P)
+    hgt = lambda i, j: CURB_H if (i % 2 == 0 and j % 2 == 0) else 0.0  # noqa: E731
+    mb = C.MeshBuilder()
+    for i in range(5):
+        for j in range(5):
+            # tiles of <= 2 m keep triangles well shaped (float32 closest-point queries stay accurate)
+            xs = np.linspace(xb[i], xb[i + 1], int(np.ceil((xb[i + 1] - xb[i]) / TILE)) + 1)
+            ys = np.linspace(yb[j], yb[j + 1], int(np.ceil((yb[j + 1] - yb[j]) / TILE)) + 1)
+            gx, gy = np.meshgrid(xs, ys, indexing="ij")
+            v = np.stack([gx.ravel(), gy.ravel(), np.full(gx.size, hgt(i, j))], 1)
+            nx, ny = len(xs), len(ys)
+            a = (np.arange(nx - 1)[:, None] * ny + np.arange(ny - 1)[None, :]).ravel()
+            f = np.concatenate([np.stack([a, a + ny, a + ny + 1], 1), np.stack([a, a + ny + 1, a + 1], 1)])
+            mb.add((v, f))
+    for i in range(5):
+        for j in range(5):
+            if hgt(i, j) == 0.0:
+                continue
+            # curb faces of this block towards lower neighbours (outward normals)
+            x0, x1, y0, y1 = xb[i], xb[i + 1], yb[j], yb[j + 1]
+            sides = []
+            if i > 0:
+                sides.append(((x0, y1), (x0, y0)))
+            if i < 4:
+                sides.append(((x1, y0), (x1, y1)))
+            if j > 0:
+                sides.append(((x0, y0), (x1, y0)))
+            if j < 4:
+                sides.append(((x1, y1), (x0, y1)))
+            for (ax, ay), (bx, by) in sides:
+                n = int(np.ceil(np.hypot(bx - ax, by - ay) / TILE))
+                for k in range(n):
+                    p0 = np.array([ax + (bx - ax) * k / n, ay + (by - ay) * k / n])
+                    p1 = np.array([ax + (bx - ax) * (k + 1) / n, ay + (by - ay) * (k + 1) / n])
+                    mb.add((np.array([[*p0, 0.0], [*p1, 0.0], [*p1, CURB_H], [*p0, CURB_H]]),
+                            np.array([[0, 1, 2], [0, 2, 3]])))
+    return mb.build()
+
+
+def _blocks(P: CityPreset):
+    """Blocks as (x0, x1, y0, y1, street sides {'-x','+x','-y','+y'}, is_central)."""
+    xb, yb = _intervals(P)
+    out = []
+    for i in (0, 2, 4):
+        for j in (0, 2, 4):
+            sides = set()
+            if i > 0:
+                sides.add("-x")
+            if i < 4:
+                sides.add("+x")
+            if j > 0:
+                sides.add("-y")
+            if j < 4:
+                sides.add("+y")
+            out.append((xb[i], xb[i + 1], yb[j], yb[j + 1], sides, i == 2 and j == 2))
+    return out
+
+
+def _split(lo: float, hi: float, n: int, rng, gap=(1.5, 3.0)):
+    """Split [lo, hi] into n intervals separated by random gaps."""
+    if n <= 1:
+        return [(lo, hi)]
+    gaps = rng.uniform(*gap, size=n - 1)
+    usable = hi - lo - gaps.sum()
+    w = rng.uniform(0.7, 1.3, size=n)
+    w = w / w.sum() * usable
+    out, x = [], lo
+    for k in range(n):
+        out.append((x, x + w[k]))
+        x += w[k] + (gaps[k] if k < n - 1 else 0)
+    return out
+
+
+def _street_edges(x0, x1, y0, y1, sides):
+    """Curb lines of a block: (start [2], end [2], inward unit normal [2]) per street side."""
+    edges = []
+    if "-y" in sides:
+        edges.append((np.array([x0, y0]), np.array([x1, y0]), np.array([0.0, 1.0])))
+    if "+y" in sides:
+        edges.append((np.array([x1, y1]), np.array([x0, y1]), np.array([0.0, -1.0])))
+    if "-x" in sides:
+        edges.append((np.array([x0, y1]), np.array([x0, y0]), np.array([1.0, 0.0])))
+    if "+x" in sides:
+        edges.append((np.array([x1, y0]), np.array([x1, y1]), np.array([-1.0, 0.0])))
+    return edges
+
+
+def _tree(scene: _Scene, xy, rng, max_r: float, z0: float):
+    r_trunk = rng.uniform(0.12, 0.18)
+    trunk_h = rng.uniform(2.3, 3.0)
+    rxy = rng.uniform(0.75, 1.0) * max_r
+    rz = rng.uniform(1.0, 1.5) * rxy
+    z_top = z0 + trunk_h
+    center = (xy[0], xy[1], z_top + rz - 0.15)
+    tid = scene.add(C.cylinder(xy[0], xy[1], r_trunk, z0, z_top, n=16, bottom=False, top=False), "trunk")
+    scene.add(C.ellipsoid(center, (rxy, rxy, rz), subdivisions=3), "crown")
+    scene.hidden.append((tid, _inside_ellipsoid(center, (rxy, rxy, rz))))
+
+
+def _car(xy, yaw, rng):
+    L = rng.uniform(4.0, 4.8)
+    H = rng.uniform(1.4, 1.6)
+    W = rng.uniform(1.7, 1.85)
+    prof = np.array([[0, 0.3], [L, 0.3], [L, 0.85], [0.78 * L, 1.0], [0.62 * L, H], [0.25 * L, H],
+                     [0.08 * L, 1.0], [0, 0.95]])
+    prof[:, 0] -= L / 2
+    return C.extrude_profile(prof, W, (xy[0], xy[1], 0.0), yaw), L, W
+
+
+def build_city(P: CityPreset, seed: int, path: LoopPath):
+    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], _Scene)."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 101]))
+    scene = _Scene()
+    gid = scene.add(_ground(P), "ground")
+    traj = path.samples(0.25)
+    S = P.sidewalk
+
+    def clear_of_path(poly, margin):
+        # reject objects whose footprint (expanded by margin) contains a trajectory sample
+        lo, hi = poly.min(0) - margin, poly.max(0) + margin
+        return not np.any(np.all((traj >= lo) & (traj <= hi), axis=1))
+
+    for (x0, x1, y0, y1, sides, central) in _blocks(P):
+        # ---- lots and buildings
+        ix0 = x0 + (S if "-x" in sides else 0.5)
+        ix1 = x1 - (S if "+x" in sides else 0.5)
+        iy0 = y0 + (S if "-y" in sides else 0.5)
+        iy1 = y1 - (S if "+y" in sides else 0.5)
+        lx, ly = ix1 - ix0, iy1 - iy0
+        along_x = lx >= ly
+        long_len, short_len = (lx, ly) if along_x else (ly, lx)
+        n_long = max(2 if central else 1, int(round(long_len / rng.uniform(6.5, 10.0))))
+        n_short = 2 if short_len >= 16.0 else 1
+        long_iv = _split(ix0 if along_x else iy0, ix1 if along_x else iy1, n_long, rng)
+        short_iv = _split(iy0 if along_x else ix0, iy1 if along_x else ix1, n_short, rng)
+        park = {}
+        if central:
+            for r in range(n_short):
+                park[(int(rng.integers(n_long)), r)] = r
+        for a, (l0, l1) in enumerate(long_iv):
+            for b, (s0, s1) in enumerate(short_iv):
+                lot = (l0, l1, s0, s1) if along_x else (s0, s1, l0, l1)
+                if (a, b) in park:
+                    _park(scene, lot, b, n_short, rng, along_x)
+                    continue
+                _building(scene, gid, lot, rng)
+        # ---- trees, poles and signs along the curbs; parked cars on the road
+        for p0, p1, nrm in _street_edges(x0, x1, y0, y1, sides):
+            edge = p1 - p0
+            length = float(np.linalg.norm(edge))
+            u = edge / length
+            s = rng.uniform(3.0, 6.0)
+            k = 0
+            while s < length - 3.0:
+                xy = p0 + s * u + nrm * P.tree_from_curb
+                _tree(scene, xy, rng, max_r=min(1.8, S - P.tree_from_curb - 0.3), z0=CURB_H)
+                gap = rng.uniform(8.0, 12.0)
+                if k % 2 == 0 and s + gap / 2 < length - 3.0:
+                    pxy = p0 + (s + gap / 2) * u + nrm * 0.4
+                    _pole(scene, pxy, u, rng)
+                s += gap
+                k += 1
+            s = rng.uniform(1.0, 3.0)
+            while s < length - 1.0 - 4.8:
+                if rng.random() < 0.7:
+                    mesh, L, W = _car(p0 + (s + 2.4) * u - nrm * 1.1, float(np.arctan2(u[1], u[0]))
+                                      + (np.pi if rng.random() < 0.5 else 0.0), rng)
+                    if clear_of_path(mesh[0][:, :2], 0.6):
+                        scene.add(mesh, "car")
+                    s += 4.8 + rng.uniform(1.0, 3.0)
+                else:
+                    s += rng.uniform(3.0, 8.0)
+    v, f, obj = scene.build()
+    return v, f, obj, scene
+
+
+def _building(scene: _Scene, gid: int, lot, rng):
+    x0, x1, y0, y1 = lot
+    sb = rng.uniform(0.0, min(1.0, 0.12 * min(x1 - x0, y1 - y0)), size=4)  # setbacks
+    x0, x1, y0, y1 = x0 + sb[0], x1 - sb[1], y0 + sb[2], y1 - sb[3]
+    w, h = x1 - x0, y1 - y0
+    if w < 2.0 or h < 2.0:
+        return
+    height = rng.uniform(6.0, 22.0)
+    kind = rng.choice(["box", "rounded", "round"], p=[0.55, 0.25, 0.2])
+    if kind == "round" and max(w, h) / min(w, h) > 2.0:
+        kind = "rounded"
+    if kind == "box":
+        poly = C.rect(x0, y0, x1, y1)
+    elif kind == "rounded":
+        poly = C.rounded_rect(x0, y0, x1, y1, rng.uniform(0.25, 0.45) * min(w, h), n_corner=10)
+    else:
+        poly = C.ellipse((x0 + x1) / 2, (y0 + y1) / 2, w / 2, h / 2, n=64)
+    scene.add(C.prism(poly, CURB_H, CURB_H + height, bottom=False, top=True), "building")
+    scene.hidden.append((gid, _inside_convex(poly, CURB_H - 0.01, CURB_H + height)))
+
+
+def _pole(scene: _Scene, xy, street_dir, rng):
+    r = 0.08
+    top = CURB_H + rng.uniform(4.5, 7.0)
+    scene.add(C.cylinder(xy[0], xy[1], r, CURB_H, top, n=16, bottom=False, top=True), "pole")
+    if rng.random() < 0.5:  # a traffic sign: a 2 cm plate facing along the street, touching the pole
+        c = np.asarray(xy) + street_dir * (r + 0.01)
+        yaw = float(np.arctan2(street_dir[1], street_dir[0]))
+        scene.add(C.oriented_box(c, (0.02, 0.6), yaw, CURB_H + 2.2, CURB_H + 2.8), "sign")
+
+
+def _park(scene: _Scene, lot, row: int, n_rows: int, rng, along_x: bool):
+    """An open lot with a tree, a fence of thin slats on its first street side and a railing on the other."""
+    x0, x1, y0, y1 = lot
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    r = min(x1 - x0, y1 - y0) / 2 - 0.6
+    if r > 0.8:
+        _tree(scene, (cx, cy), rng, max_r=min(r, 2.5), z0=CURB_H)
+    # the lot's street sides: its low edge (-y, or -x) gets the fence, its high edge the railing
+    lines = []
+    if along_x:
+        if row == 0:
+            lines.append(("fence", (x0, y0), (x1, y0)))
+        if row == n_rows - 1:
+            lines.append(("rail", (x1, y1), (x0, y1)))
+    else:
+        if row == 0:
+            lines.append(("fence", (x0, y1), (x0, y0)))
+        if row == n_rows - 1:
+            lines.append(("rail", (x1, y0), (x1, y1)))
+    for kind, a, b in lines:
+        a, b = np.asarray(a, float), np.asarray(b, float)
+        length = float(np.linalg.norm(b - a))
+        u = (b - a) / length
+        yaw = float(np.arctan2(u[1], u[0]))
+        if kind == "fence":
+            n = int((length - 0.1) // 0.12)
+            for k in range(n):
+                c = a + u * (0.1 + k * 0.12)
+                scene.add(C.oriented_box(c, (0.05, 0.03), yaw, CURB_H, CURB_H + 1.2, bottom=False), "fence")
+            mid = a + u * (0.1 + (n - 1) * 0.06)
+            scene.add(C.oriented_box(mid, ((n - 1) * 0.12 + 0.05, 0.04), yaw, CURB_H + 1.2, CURB_H + 1.26),
+                      "fence")
+        else:
+            n = max(2, int(length // 1.5) + 1)
+            rr = 0.03
+            for k in range(n):
+                c = a + u * (0.15 + k * (length - 0.3) / (n - 1))
+                scene.add(C.cylinder(c[0], c[1], rr, CURB_H, CURB_H + 1.0 - rr, n=12, bottom=False, top=True),
+                          "railing")
+            p0 = np.r_[a + u * 0.1, CURB_H + 1.0]
+            p1 = np.r_[b - u * 0.1, CURB_H + 1.0]
+            scene.add(C.cylinder_between(p0, p1, rr, n=12), "railing")
+
+
+# ------------------------------------------------------------------------------------------------
+# pedestrians (dynamic; not in the ground truth)
+# ------------------------------------------------------------------------------------------------
+
+
+def _pedestrian_boxes(P: CityPreset, seed: int, n_frames: int, step: float):
+    """Per frame a list of (center_xy, yaw) for P.pedestrians boxes walking around the central block."""
+    xb, yb = _intervals(P)
+    d = P.ped_from_curb
+    hx, hy = xb[3] - d, yb[3] - d
+    square = LoopPath(hx, hy, 1e-3)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 202]))
+    n = P.pedestrians
+    s0 = (np.arange(n) + rng.uniform(0.1, 0.9, n)) * square.length / n
+    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    frames = []
+    for i in range(n_frames):
+        peds = []
+        for k in range(n):
+            x, y, yaw = square.at(s0[k] + sign[k] * step * i)
+            peds.append(((x, y), yaw + (0.0 if sign[k] > 0 else np.pi)))
+        frames.append(peds)
+    return frames
+
+
+def _pedestrian_mesh(peds):
+    mb = C.MeshBuilder()
+    for (x, y), yaw in peds:
+        mb.add(C.oriented_box((x, y), (0.5, 0.4), yaw, CURB_H, CURB_H + 1.75, bottom=False))
+    return mb.build()
+
+
+# ------------------------------------------------------------------------------------------------
+# the generator
+# ------------------------------------------------------------------------------------------------
+
+
+def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
+                  noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
+                  pedestrians: bool = False) -> dict:
+    """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
+
+    seed: everything (layout, sizes, noise) is deterministic from it.
+    small: 40 m x 40 m scene, 15 frames, 32 x 512 beams (seconds); default 100 m x 100 m, 130 frames
+           ~1 m apart, 64 x 1024 beams.
+    n_frames: frames evenly spaced over the one closed loop (default per preset).
+    noise_m: std of Gaussian range noise (m).  beams / azimuth_steps: override the LiDAR resolution.
+    pedestrians: add boxes walking around the central block (in the scans, not in the ground truth).
+    Returns the stats written to meta.json, plus "elapsed_s" (not written, so files stay deterministic).
+    """
+    t_start = time.perf_counter()
+    P = SMALL if small else DEFAULT
+    n_frames = int(n_frames or P.frames)
+    beams = int(beams or P.beams)
+    azimuth_steps = int(azimuth_steps or P.azimuth_steps)
+    if n_frames < 1 or beams < 1 or azimuth_steps < 1:
+        raise ValueError("n_frames, beams and azimuth_steps must be >= 1")
+    out_dir = os.fspath(out_dir)
+    scan_dir = C.prepare_out_dir(out_dir, "velodyne", ".bin")
+
+    off = P.lane_offset
+    path = LoopPath(P.street_x + off, P.street_y + off, P.corner_radius)
+    V, F, obj, scene = build_city(P, seed, path)
+    T_wl = lidar_poses(path, n_frames)
+    Tr = kitti_tr()
+
+    # ---- scans
+    caster = C.Raycaster(V, F)
+    dirs_s = beam_directions(beams, azimuth_steps)
+    spacing = path.length / n_frames
+    peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing) if pedestrians else None
+    counts = []
+    for i in range(n_frames):
+        R, o = T_wl[i, :3, :3], T_wl[i, :3, 3]
+        dirs_w = dirs_s @ R.T
+        t, nrm = caster.cast(o, dirs_w)
+        if peds is not None:
+            tp, nrm_p = C.Raycaster(*_pedestrian_mesh(peds[i])).cast(o, dirs_w)
+            closer = tp < t
+            t = np.where(closer, tp, t)
+            nrm = np.where(closer[:, None], nrm_p, nrm)
+        valid = np.isfinite(t) & (t <= MAX_RANGE)
+        t = t[valid]
+        if noise_m > 0:
+            rng = np.random.default_rng(np.random.SeedSequence([seed, 303, i]))
+            t = np.maximum(t + rng.normal(0.0, noise_m, size=t.shape), 0.0)
+        pts = dirs_s[valid] * t[:, None]
+        inten = np.abs(np.einsum("ij,ij->i", nrm[valid].astype(np.float64), dirs_w[valid]))
+        write_scan_bin(os.path.join(scan_dir, f"{i:06d}.bin"), pts, np.clip(inten, 0.0, 1.0))
+        counts.append(len(pts))
+    write_calib(os.path.join(out_dir, "calib.txt"), Tr)
+    write_poses(os.path.join(out_dir, "poses.txt"), camera_poses_from_lidar(T_wl, Tr))
+    ped_file = os.path.join(out_dir, "pedestrians.json")
+    if peds is not None:
+        with open(ped_file, "w") as f:
+            json.dump({"size_xyz_m": [0.5, 0.4, 1.75], "base_z_m": CURB_H,
+                       "frames": [[{"xy": C.rounded(p, 4), "yaw": round(float(y), 5)} for p, y in fr]
+                                  for fr in peds]}, f)
+    elif os.path.exists(ped_file):
+        os.remove(ped_file)
+
+    # ---- ground truth
+    write_mesh_ply(os.path.join(out_dir, "gt_mesh.ply"), V, F)
+    gt_pts, gt_nrm = _gt_points(V, F, obj, scene, P.gt_density, seed)
+    write_points_ply(os.path.join(out_dir, "gt_points.ply"), gt_pts, gt_nrm)
+
+    kinds = {}
+    for k in scene.kinds:
+        kinds[k] = kinds.get(k, 0) + 1
+    meta = {
+        "scene": "city", "seed": int(seed), "small": bool(small), "frames": n_frames,
+        "points_per_frame": C.points_stats(counts),
+        "extent": {"min": C.rounded(V.min(0), 3), "max": C.rounded(V.max(0), 3)},
+        "sensor": {"type": "lidar", "beams": beams, "azimuth_steps": azimuth_steps,
+                   "elevation_deg": list(ELEVATION_DEG), "max_range_m": MAX_RANGE, "height_m": SENSOR_H,
+                   "noise_m": float(noise_m)},
+        "trajectory": {"loop_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
+                       "closed_loop": True},
+        "calib_Tr": C.rounded(Tr[:3].reshape(-1), 12),
+        "objects": kinds, "pedestrians": (P.pedestrians if pedestrians else 0),
+        "gt": {"mesh_triangles": int(len(F)), "points": int(len(gt_pts)),
+               "density_per_m2": P.gt_density, "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 2)},
+    }
+    C.write_json(os.path.join(out_dir, "meta.json"), meta)
+    elapsed = time.perf_counter() - t_start
+    log.info("synth city: %d frames, %.0f points/frame, %d GT points -> %s (%.1f s)", n_frames,
+             meta["points_per_frame"]["mean"], len(gt_pts), out_dir, elapsed)
+    return dict(meta, elapsed_s=round(elapsed, 2), out_dir=out_dir)
+
+
+def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int):
+    """Uniform samples of the static mesh with hidden samples (inside other solids) removed."""
+    pts, nrm, fid = C.sample_surface(V, F, density, seed=seed * 7919 + 11, return_faces=True)
+    sample_obj = obj[fid]
+    keep = np.ones(len(pts), bool)
+    for oid, inside in scene.hidden:
+        sel = np.flatnonzero(sample_obj == oid)
+        keep[sel[inside(pts[sel])]] = False
+    return pts[keep].astype(np.float32), nrm[keep]

@@ -1,0 +1,215 @@
+"""jaxmap.synth: the synthetic city (LiDAR, KITTI layout) and room (depth camera) against their ground truth."""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from jaxmap.geometry import pose_change, transform_points, validate_pose
+from jaxmap.io import open_sequence, read_calib, read_mesh_ply, read_points_ply, read_poses
+from jaxmap.synth import generate_city, generate_room
+from jaxmap.synth.common import closest_distance, hash_tree, mesh_area, sample_surface
+
+
+def world_points(seq):
+    return np.concatenate([transform_points(f.pose, f.points.astype(np.float64)) for f in seq])
+
+
+def gt_distance(data_dir, points, refine_above):
+    """Distances to gt_mesh.ply, exact (float64) wherever they exceed refine_above."""
+    V, F = read_mesh_ply(os.path.join(data_dir, "gt_mesh.ply"))
+    rough = closest_distance(V, F, points, exact=False)  # float32, good to a few mm: fail fast
+    if np.median(rough) > 0.05:
+        return rough
+    return closest_distance(V, F, points, refine_above=refine_above)
+
+
+# ------------------------------------------------------------------------------------------------
+# scans lie on the ground-truth surface (this checks the ray casting, the files, the KITTI pose
+# convention inv(Tr) @ pose @ Tr and the depth back-projection end to end)
+# ------------------------------------------------------------------------------------------------
+
+
+def test_city_scans_lie_on_gt_mesh(small_city):
+    seq = open_sequence(small_city)
+    meta = json.loads((small_city / "meta.json").read_text())
+    assert seq.kind == "kitti" and len(seq) == meta["frames"] == 15
+    pts = world_points(seq)
+    assert len(pts) == sum(len(f.points) for f in seq) > 10 * 10_000
+    # float32 scan coordinates (< 50 m: ~4e-6 m) and float32 ray casting leave errors of micrometres
+    d = gt_distance(small_city, pts, refine_above=1e-4)
+    assert d.max() < 1e-3, f"{(d >= 1e-3).sum()} points farther than 1 mm from the GT mesh (max {d.max():.4f} m)"
+    assert np.median(d) < 1e-5
+
+
+def test_city_convention_is_needed(small_city):
+    """Reading poses.txt as LiDAR poses (ignoring calib.txt) puts the scans off the GT: the test above
+    really exercises Tr."""
+    Tr = read_calib(small_city / "calib.txt")
+    assert pose_change(Tr, np.eye(4))[0] > 1.0  # far from identity
+    seq = open_sequence(small_city, end_frame=1)
+    cam = read_poses(small_city / "poses.txt")[0]
+    wrong = transform_points(cam, seq.frame(0).points.astype(np.float64))
+    V, F = read_mesh_ply(small_city / "gt_mesh.ply")
+    assert np.median(closest_distance(V, F, wrong, exact=False)) > 0.1
+
+
+def test_room_depth_points_lie_on_gt_mesh(small_room):
+    seq = open_sequence(small_room)
+    assert seq.kind == "depth" and len(seq) == 10
+    fx, fy, cx, cy = seq.intrinsics
+    W, H = 160, 120
+    # Bound: depth is stored in whole millimetres, so z is off by <= 0.5 mm; the point moves along its
+    # pixel ray by 0.5 mm * |(x/z, y/z, 1)| <= 0.5 mm * max_ray_norm, and the distance to the surface is at
+    # most that displacement. Float32 ray casting/storage adds < 0.01 mm; allow 0.05 mm for it.
+    max_ray_norm = np.sqrt(1 + (max(cx, W - 1 - cx) / fx) ** 2 + (max(cy, H - 1 - cy) / fy) ** 2)
+    bound = 0.5e-3 * max_ray_norm + 0.05e-3
+    assert bound < 0.75e-3
+    pts = world_points(seq)
+    assert len(pts) == 10 * W * H  # a closed room: every pixel sees a surface
+    d = gt_distance(small_room, pts, refine_above=0.9 * bound)  # exact where the upper bound is close
+    assert d.max() < bound, f"max distance {d.max() * 1e3:.3f} mm > bound {bound * 1e3:.3f} mm"
+    assert np.median(d) < 0.3e-3
+
+
+# ------------------------------------------------------------------------------------------------
+# layout, trajectory and meta
+# ------------------------------------------------------------------------------------------------
+
+
+def test_city_layout_and_trajectory(small_city):
+    meta = json.loads((small_city / "meta.json").read_text())
+    seq = open_sequence(small_city)
+    names = sorted(os.listdir(small_city / "velodyne"))
+    assert names == [f"{i:06d}.bin" for i in range(15)]
+    for T in seq.poses:
+        validate_pose(T)
+        assert abs(T[2, 3] - 1.73) < 1e-9  # sensor height above the road
+        assert T[2, 2] > 0.999  # LiDAR z axis is (almost) world up
+    steps = np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1)
+    close = np.linalg.norm(seq.poses[-1, :3, 3] - seq.poses[0, :3, 3])
+    spacing = meta["trajectory"]["frame_spacing_m"]
+    # frames evenly spaced along the loop (chords are shorter on the corner arcs), and the loop closes
+    assert np.all(steps <= spacing + 1e-4) and np.all(steps > 0.8 * spacing) and close <= spacing + 1e-4
+    counts = [len(f.points) for f in seq]
+    assert meta["points_per_frame"] == {"mean": round(float(np.mean(counts)), 1), "min": min(counts),
+                                        "max": max(counts)}
+    assert meta["sensor"]["beams"] == 32 and meta["sensor"]["azimuth_steps"] == 512
+    assert max(counts) <= 32 * 512
+    ext = np.array(meta["extent"]["max"]) - np.array(meta["extent"]["min"])
+    assert 35 < ext[0] < 50 and 35 < ext[1] < 50
+    ranges = np.concatenate([np.linalg.norm(f.points, axis=1) for f in seq])
+    assert ranges.max() <= 50.0 + 1e-3
+    for k in ("building", "trunk", "crown", "car", "fence", "railing", "pole"):
+        assert meta["objects"].get(k, 0) > 0, k
+    raw = np.fromfile(small_city / "velodyne" / "000000.bin", dtype=np.float32).reshape(-1, 4)
+    assert 0 <= raw[:, 3].min() and raw[:, 3].max() <= 1 and raw[:, 3].std() > 0.05  # intensities
+
+
+def test_room_layout_and_trajectory(small_room):
+    meta = json.loads((small_room / "meta.json").read_text())
+    seq = open_sequence(small_room)
+    assert meta["sensor"]["width"] == 160 and meta["sensor"]["height"] == 120
+    assert meta["points_per_frame"]["min"] == 160 * 120
+    P = seq.poses[:, :3, 3]
+    assert np.all(np.abs(P[:, 0]) < 2.5) and np.all(np.abs(P[:, 1]) < 2.0)  # inside the room
+    fwd = seq.poses[:, :3, 2]
+    assert np.all(np.einsum("ij,ij->i", fwd[:, :2], -P[:, :2]) > 0)  # looking inward
+    steps = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    assert np.linalg.norm(P[-1] - P[0]) < 1.5 * steps.max()  # closes the loop
+
+
+def test_gt_points_are_dense_uniform_samples(small_city, small_room):
+    for d, density in ((small_city, 40.0), (small_room, 5000.0)):
+        meta = json.loads((d / "meta.json").read_text())
+        pts, nrm = read_points_ply(d / "gt_points.ply", return_normals=True)
+        assert len(pts) == meta["gt"]["points"]
+        area = meta["gt"]["surface_area_m2"]
+        # hidden surfaces (under buildings, inside the tree crowns, ...) are removed, the rest is kept
+        assert 0.6 * area * density < len(pts) <= 1.01 * area * density
+        np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-5)
+        sub = pts[:: max(1, len(pts) // 20000)]
+        assert gt_distance(d, sub.astype(np.float64), refine_above=1e-4).max() < 1e-4
+
+
+def test_surface_sampler_is_uniform():
+    from jaxmap.synth.common import box
+
+    v, f = box([0, 0, 0], [1, 2, 3])
+    pts, nrm = sample_surface(v, f, 20000.0, seed=3)
+    assert abs(len(pts) - 22 * 20000) < 1000
+    # each face receives samples in proportion to its area
+    for axis, size in ((0, 2 * 3), (1, 1 * 3), (2, 1 * 2)):
+        on = np.isclose(pts[:, axis], 0.0) | np.isclose(pts[:, axis], [1, 2, 3][axis])
+        assert abs(on.sum() / len(pts) - 2 * size / 22.0) < 0.01
+    assert mesh_area(v, f).sum() == pytest.approx(22.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# determinism, pedestrians, noise, CLI
+# ------------------------------------------------------------------------------------------------
+
+
+def test_city_is_deterministic(tmp_path):
+    a = generate_city(tmp_path / "a", seed=3, small=True, n_frames=3)
+    b = generate_city(tmp_path / "b", seed=3, small=True, n_frames=3)
+    c = generate_city(tmp_path / "c", seed=4, small=True, n_frames=3)
+    ha, hb, hc = hash_tree(tmp_path / "a"), hash_tree(tmp_path / "b"), hash_tree(tmp_path / "c")
+    assert len(ha) == 3 + 5 and ha == hb
+    a.pop("elapsed_s"), b.pop("elapsed_s"), a.pop("out_dir"), b.pop("out_dir")
+    assert a == b
+    for name in ("gt_mesh.ply", "gt_points.ply", "velodyne/000000.bin"):
+        assert ha[name] != hc[name], name
+    assert c["seed"] == 4
+
+
+def test_room_is_deterministic(tmp_path):
+    generate_room(tmp_path / "a", seed=1, small=True, n_frames=2)
+    generate_room(tmp_path / "b", seed=1, small=True, n_frames=2)
+    generate_room(tmp_path / "c", seed=2, small=True, n_frames=2)
+    ha, hb, hc = hash_tree(tmp_path / "a"), hash_tree(tmp_path / "b"), hash_tree(tmp_path / "c")
+    assert len(ha) == 5 + 2 and ha == hb
+    for name in ("gt_mesh.ply", "gt_points.ply", os.path.join("depth", "000000.png")):
+        assert ha[name] != hc[name], name
+
+
+def test_regenerating_removes_stale_frames(tmp_path):
+    generate_room(tmp_path, small=True, n_frames=3, width=16, height=12)
+    generate_room(tmp_path, small=True, n_frames=2, width=16, height=12)
+    assert len(os.listdir(tmp_path / "depth")) == 2 and len(open_sequence(tmp_path)) == 2
+
+
+def test_pedestrians_are_in_scans_not_in_gt(tmp_path, small_city):
+    generate_city(tmp_path, seed=0, small=True, n_frames=3, pedestrians=True)
+    h0, h1 = hash_tree(small_city), hash_tree(tmp_path)
+    assert h1["gt_mesh.ply"] == h0["gt_mesh.ply"] and h1["gt_points.ply"] == h0["gt_points.ply"]
+    peds = json.loads((tmp_path / "pedestrians.json").read_text())
+    assert len(peds["frames"]) == 3 and len(peds["frames"][0]) == 4
+    assert peds["frames"][0][0]["xy"] != peds["frames"][2][0]["xy"]  # they move
+    seq = open_sequence(tmp_path)
+    d = gt_distance(tmp_path, world_points(seq), refine_above=1e-3)
+    assert (d > 0.05).sum() > 20  # points on the pedestrians are off the static GT
+    generate_city(tmp_path, seed=0, small=True, n_frames=3)
+    assert not (tmp_path / "pedestrians.json").exists()
+
+
+def test_noise_and_resolution_options(tmp_path):
+    generate_city(tmp_path / "c", seed=0, small=True, n_frames=2, noise_m=0.02, beams=8, azimuth_steps=64)
+    seq = open_sequence(tmp_path / "c")
+    assert max(len(f.points) for f in seq) <= 8 * 64
+    d = gt_distance(tmp_path / "c", world_points(seq), refine_above=10.0)
+    assert 0.002 < np.median(d) < 0.03
+    generate_room(tmp_path / "r", seed=0, small=True, n_frames=1, noise_m=0.01, width=40, height=30)
+    seq = open_sequence(tmp_path / "r")
+    assert seq.frame(0).points.shape == (40 * 30, 3)
+    d = gt_distance(tmp_path / "r", world_points(seq), refine_above=10.0)
+    assert 0.002 < np.median(d) < 0.02
+
+
+def test_cli_synth(tmp_path, capsys):
+    from jaxmap.cli import main
+
+    assert main(["synth", "room", "--out", str(tmp_path), "--small", "--frames", "2", "--seed", "5"]) == 0
+    stats = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert stats["frames"] == 2 and stats["seed"] == 5 and stats["scene"] == "room"
+    assert len(open_sequence(tmp_path)) == 2
