@@ -174,3 +174,20 @@ def test_small_city_protocol_frames_agree(request):
     assert m["n_gt"] > 10_000
     assert m["completion_ratio"] > 99.0
     assert m["completion_cm"] < 5.0
+
+
+def test_surface_distances_remove_the_sampling_floor():
+    """A perfect prediction scores ~0 cm against sparse GT points when the meshes are used; the
+    point-to-point fallback shows the floor of half the sample spacing that the meshes remove."""
+    import trimesh
+
+    from jaxmap.metrics import evaluate, evaluate_mesh, sample_mesh
+
+    plane = trimesh.creation.box(extents=(20.0, 20.0, 0.01))
+    plane.apply_translation((0, 0, -0.005))
+    rng = np.random.default_rng(0)
+    gt = np.stack([rng.uniform(-9, 9, 32400), rng.uniform(-9, 9, 32400), np.zeros(32400)], 1)  # 100 / m^2
+    exact = evaluate_mesh(plane, gt, n_samples=200_000, gt_mesh=plane, threshold_m=0.05)
+    assert exact["accuracy_cm"] < 0.1 and exact["completion_cm"] < 0.1, exact
+    floor = evaluate(sample_mesh(plane, 200_000), gt, threshold_m=0.05)
+    assert floor["accuracy_cm"] > 2.0, floor

@@ -185,3 +185,30 @@ def test_hierarchical_sampler_matches_algorithm_1():
     u = hierarchical.sample_uniform(jax.random.PRNGKey(1), st, ids, n, batch=20000)
     share0 = (np.asarray(u.slots) == 0).mean()
     assert abs(share0 - 30 / 62) < 0.03  # uniform over pairs: block 0 holds 30 of the 62 window pairs
+
+
+def test_sparse_adam_equals_dense_adam_on_touched_rows_and_leaves_others():
+    import optax
+
+    from jaxmap.n3.mapper import sparse_adam
+
+    rng = np.random.default_rng(4)
+    R, D = 12, 3
+    table = jnp.asarray(rng.normal(size=(R, D)), jnp.float32)
+    mu, nu, cnt = jnp.zeros((R, D)), jnp.zeros((R, D)), jnp.zeros((), jnp.int32)
+    tx = optax.adam(0.01)
+    dense, st = table, tx.init(table)
+    touched = np.arange(8)  # rows 8..11 are never touched
+    for step in range(3):
+        rows = rng.choice(touched, size=20).astype(np.int32)
+        rows[:8] = touched  # every touched row appears at least once per step: dense == lazy there
+        rows[-2:] = -1      # padding
+        g = rng.normal(size=(20, D)).astype(np.float32)
+        table, mu, nu, cnt = sparse_adam(table, mu, nu, cnt, jnp.asarray(rows), jnp.asarray(g), lr=0.01)
+        gd = np.zeros((R, D), np.float32)
+        np.add.at(gd, rows[rows >= 0], g[rows >= 0])
+        upd, st = tx.update(jnp.asarray(gd), st, dense)
+        dense = optax.apply_updates(dense, upd)
+    np.testing.assert_allclose(np.asarray(table)[:8], np.asarray(dense)[:8], rtol=1e-5, atol=1e-6)
+    before = np.asarray(jnp.asarray(np.random.default_rng(4).normal(size=(R, D)), jnp.float32))
+    np.testing.assert_array_equal(np.asarray(table)[8:], before[8:])

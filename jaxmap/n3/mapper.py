@@ -116,57 +116,53 @@ def _slots_needed(store, vox_rows, center_vox, frame, *, radius_vox: int, mode: 
     return jnp.sum(touched & ~has_block), jnp.sum((store.voxel_of_slot < 0) | released)
 
 
-def _window_rows(voxel_corner_rows, store, ids, n):
-    """[S, L*8] global feature rows of the window's blocks, -1 outside the window."""
-    s = ids.shape[0]
-    vox = store.voxel_of_slot[ids]
-    rows = voxel_corner_rows[jnp.maximum(vox, 0)]
-    ok = (jnp.arange(s) < n) & (vox >= 0)
-    return jnp.where(ok[:, None], rows, -1)
+def sparse_adam(table, mu, nu, count, rows, grads, *, lr: float, b1: float = 0.9, b2: float = 0.999,
+                eps: float = 1e-8):
+    """Adam on the rows a batch touched ("lazy" Adam, as for sparse embeddings).
 
-
-@jax.jit
-def _mark_active(features, voxel_corner_rows, store, ids, n):
-    """Mark the feature rows used by the window. Returns (mark [R] bool, count [] int32)."""
-    r = features.shape[0]
-    rows = _window_rows(voxel_corner_rows, store, ids, n)
-    mark = jnp.zeros((r + 1,), bool).at[jnp.where(rows >= 0, rows, r)].set(True)[:r]
-    return mark, mark.sum()
+    table, mu, nu: [R, D]; count: [] int32 step; rows: [M] int32 (-1 ignored, duplicates allowed);
+    grads: [M, D] (duplicate rows are summed first, so this equals dense Adam's step on those rows).
+    Rows the batch does not touch keep their values and moments: the cost is O(M D), not O(R D).
+    """
+    r, m = table.shape[0], rows.shape[0]
+    key = jnp.where(rows >= 0, rows, r)
+    order = jnp.argsort(key)
+    ks = key[order]
+    first = jnp.concatenate([jnp.ones((1,), bool), ks[1:] != ks[:-1]])
+    seg = jnp.cumsum(first) - 1                                                   # [M]
+    g = jax.ops.segment_sum(grads[order], seg, num_segments=m)                   # [M, D]
+    ru = jnp.full((m,), r, jnp.int32).at[seg].set(ks.astype(jnp.int32))          # [M], r = padding
+    count = count + 1
+    t = count.astype(jnp.float32)
+    mu_u = b1 * mu.at[ru].get(mode="fill", fill_value=0.0) + (1.0 - b1) * g
+    nu_u = b2 * nu.at[ru].get(mode="fill", fill_value=0.0) + (1.0 - b2) * g * g
+    step = lr * (mu_u / (1.0 - b1**t)) / (jnp.sqrt(nu_u / (1.0 - b2**t)) + eps)
+    p_u = table.at[ru].get(mode="fill", fill_value=0.0) - step
+    return (table.at[ru].set(p_u, mode="drop"), mu.at[ru].set(mu_u, mode="drop"),
+            nu.at[ru].set(nu_u, mode="drop"), count)
 
 
 @functools.partial(
     jax.jit,
-    static_argnames=("n_active", "module", "iters", "hier", "nv", "np_", "nt", "batch", "keyframes",
-                     "leaf", "levels", "lr", "beta", "weight_e", "train_decoder", "reset_adam"),
+    static_argnames=("module", "iters", "hier", "nv", "np_", "nt", "batch", "keyframes", "leaf", "levels", "lr",
+                     "beta", "weight_e", "train_decoder", "reset_adam"),
     donate_argnums=(0, 1, 2),
 )
 def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, store, voxel_corner_rows,
-                 ids, n, mark, key, frame, *, n_active: int, module, iters: int, hier: bool, nv: int,
-                 np_: int, nt: int, batch: int, keyframes: int, leaf: float, levels: int, lr: float,
-                 beta: float, weight_e: float, train_decoder: bool, reset_adam: bool):
-    """K iterations of hierarchical sampling + Adam on the window's feature rows, in one call.
+                 ids, n, key, frame, *, module, iters: int, hier: bool, nv: int, np_: int, nt: int, batch: int,
+                 keyframes: int, leaf: float, levels: int, lr: float, beta: float, weight_e: float,
+                 train_decoder: bool, reset_adam: bool):
+    """K iterations of (hierarchical) sampling, loss and Adam, in one compiled call.
 
-    Only the A = n_active rows the window touches are copied out, optimised and written back, so the
-    cost per iteration does not grow with the map.
+    Features get sparse Adam on the rows each batch touches, so an iteration costs O(batch), however
+    large the map or the window; the decoder gets optax Adam until it is frozen.
     """
-    r, _ = features.shape
-    local_of_row = jnp.cumsum(mark) - 1                                          # [R]
-    active = jnp.nonzero(mark, size=n_active, fill_value=r)[0]                   # [A]
-    slot_rows = voxel_corner_rows[jnp.maximum(store.voxel_of_slot, 0)]          # [S, L*8]
-    slot_local = jnp.where(slot_rows >= 0, local_of_row[jnp.maximum(slot_rows, 0)], n_active)
-    local = features.at[active].get(mode="fill", fill_value=0.0)                # [A, D]
-    adam = optax.scale_by_adam()
-    if reset_adam:
-        feat_state = adam.init(local)
-    else:
-        feat_state = optax.ScaleByAdamState(
-            count=feat_count, mu=feat_mu.at[active].get(mode="fill", fill_value=0.0),
-            nu=feat_nu.at[active].get(mode="fill", fill_value=0.0))
+    if reset_adam:  # the original N3 code rebuilds its optimiser every frame
+        feat_mu, feat_nu = jnp.zeros_like(feat_mu), jnp.zeros_like(feat_nu)
+        feat_count = jnp.zeros_like(feat_count)
     dec_tx = optax.adam(lr)
 
-    def loss_fn(local, dec, b):
-        rows = slot_local[b.slots]                                               # [G, L*8]
-        feats = local.at[rows].get(mode="fill", fill_value=0.0)                 # [G, L*8, D]
+    def loss_fn(feats, dec, b):
         vox = store.coord[b.slots]                                               # [G, 3]
         g, k = b.points.shape[:2]
 
@@ -183,28 +179,25 @@ def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, st
     grad_fn = jax.value_and_grad(loss_fn, argnums=(0, 1) if train_decoder else (0,), has_aux=True)
 
     def body(i, carry):
-        local, feat_state, dec, dec_state, key, acc = carry
+        table, mu, nu, cnt, dec, dec_state, key, acc = carry
         key, k = jax.random.split(key)
         if hier:
             b = hierarchical.sample_hierarchical(k, store, ids, n, nv=nv, np_=np_, nt=nt, frame=frame,
                                                  keyframes=keyframes)
         else:
             b = hierarchical.sample_uniform(k, store, ids, n, batch=batch, frame=frame, keyframes=keyframes)
-        (loss, (l_bce, l_eik)), grads = grad_fn(local, dec, b)
-        upd, feat_state = adam.update(grads[0], feat_state)
-        local = local - lr * upd
+        rows = voxel_corner_rows[jnp.maximum(store.voxel_of_slot[b.slots], 0)]   # [G, L*8]
+        feats = table.at[rows].get(mode="fill", fill_value=0.0)                  # [G, L*8, D]
+        (loss, (l_bce, l_eik)), grads = grad_fn(feats, dec, b)
+        table, mu, nu, cnt = sparse_adam(table, mu, nu, cnt, rows.reshape(-1),
+                                         grads[0].reshape(-1, table.shape[1]), lr=lr)
         if train_decoder:
             dupd, dec_state = dec_tx.update(grads[1], dec_state, dec)
             dec = optax.apply_updates(dec, dupd)
-        return local, feat_state, dec, dec_state, key, acc + jnp.stack([loss, l_bce, l_eik])
+        return table, mu, nu, cnt, dec, dec_state, key, acc + jnp.stack([loss, l_bce, l_eik])
 
-    carry = (local, feat_state, dec_params, dec_opt, key, jnp.zeros((3,)))
-    local, feat_state, dec_params, dec_opt, _, acc = jax.lax.fori_loop(0, iters, body, carry)
-    features = features.at[active].set(local, mode="drop")
-    if not reset_adam:
-        feat_mu = feat_mu.at[active].set(feat_state.mu, mode="drop")
-        feat_nu = feat_nu.at[active].set(feat_state.nu, mode="drop")
-        feat_count = feat_state.count
+    carry = (features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, key, jnp.zeros((3,)))
+    features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, _, acc = jax.lax.fori_loop(0, iters, body, carry)
     return features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, acc / iters
 
 
@@ -395,16 +388,14 @@ class N3Mapper:
         s = self.state
         t2 = time.perf_counter()
 
-        mark, n_act = _mark_active(s.features, s.voxel_corner_rows, s.store, ids, n_win)
-        n_active = _pow2(max(int(n_act), 4096))  # coarse buckets: few recompiles as the map grows
         tc = cfg.train
         train_decoder = int(frame) < tc.freeze_after_frame
         feats, mu, nu, cnt, dec, dec_opt, losses = _train_frame(
             s.features, s.feat_mu, s.feat_nu, s.feat_count, s.decoder, s.dec_opt, s.store, s.voxel_corner_rows,
-            ids, n_win, mark, k_train, frame, n_active=n_active, module=self.module, iters=tc.iters,
-            hier=tc.hierarchical, nv=tc.nv, np_=tc.np_per_voxel, nt=tc.nt, batch=tc.batch_size,
-            keyframes=keyframes, leaf=self.leaf, levels=self.levels, lr=tc.lr, beta=tc.sigma_sigmoid_m,
-            weight_e=tc.weight_e, train_decoder=train_decoder, reset_adam=tc.reset_adam_each_frame)
+            ids, n_win, k_train, frame, module=self.module, iters=tc.iters, hier=tc.hierarchical, nv=tc.nv,
+            np_=tc.np_per_voxel, nt=tc.nt, batch=tc.batch_size, keyframes=keyframes, leaf=self.leaf,
+            levels=self.levels, lr=tc.lr, beta=tc.sigma_sigmoid_m, weight_e=tc.weight_e,
+            train_decoder=train_decoder, reset_adam=tc.reset_adam_each_frame)
         losses = np.asarray(losses)
         self.state = s.replace(features=feats, feat_mu=mu, feat_nu=nu, feat_count=cnt, decoder=dec,
                                dec_opt=dec_opt, key=key, frame=frame + 1)
@@ -415,7 +406,7 @@ class N3Mapper:
             "eikonal": float(losses[2]), "window_voxels": int(n_win), "store_pairs": int(window.total_pairs(s.store)),
             "store_bytes": store_bytes(s.store), "leaf_voxels": int(s.voxels.count),
             "feature_rows": int(s.corners.count), "feature_bytes": int(s.corners.count) * s.features.shape[1] * 4,
-            "active_rows": int(n_act), "free_dropped": n_free_dropped,
+            "free_dropped": n_free_dropped,
         }
         self.timings.append(info)
         return info

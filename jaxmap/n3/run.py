@@ -104,12 +104,17 @@ def finish_run(mapper, cfg: MapConfig, out_dir: str, seq, evaluate: bool = True)
         radius = cfg.eval.eval_radius_m
         metrics = evaluate_mesh_file(mesh_path, cfg.data.path, threshold_m=cfg.eval.threshold_m,
                                      cull_distance_m=cfg.eval.cull_distance_m, eval_radius_m=radius,
-                                     n_samples=cfg.eval.n_samples, begin_frame=cfg.data.begin_frame,
-                                     end_frame=cfg.data.end_frame, every_frame=cfg.data.every_frame)
+                                     n_samples=cfg.eval.n_samples, **_frame_selection(cfg))
         with open(os.path.join(out_dir, "metrics.json"), "w") as f:
             json.dump(metrics, f)
         summary["metrics"] = metrics
     return summary
+
+
+def _frame_selection(cfg: MapConfig) -> dict:
+    """The frames a run mapped, so that GT culling uses exactly what the mapper saw."""
+    return {"begin_frame": cfg.data.begin_frame, "end_frame": cfg.data.end_frame,
+            "every_frame": cfg.data.every_frame}
 
 
 def _config_from_args(args) -> MapConfig:

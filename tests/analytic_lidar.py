@@ -1,0 +1,25 @@
+"""A tiny analytic LiDAR for N3 tests: ground plane and two long walls, ray cast in closed form."""
+import numpy as np
+
+
+def corridor_scan(x_sensor: float, *, beams: int = 16, steps: int = 256, height: float = 1.7,
+                  half_width: float = 6.0, max_range: float = 30.0) -> np.ndarray:
+    """Points [N,3] float32 in the sensor frame of a sensor at (x_sensor, 0, height), looking along +x.
+    The scene is the ground z=0 and walls y=+-half_width (world frame); it does not depend on x, so a
+    scan at any x is the same in the sensor frame, which is what makes long trajectories cheap."""
+    az = np.linspace(-np.pi, np.pi, steps, endpoint=False)
+    el = np.deg2rad(np.linspace(-25, 2, beams))
+    A, E = np.meshgrid(az, el)
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    t = np.full(len(d), np.inf)
+    t = np.minimum(t, np.where(d[:, 2] < -1e-6, -height / d[:, 2], np.inf))
+    with np.errstate(divide="ignore"):
+        t = np.minimum(t, np.where(np.abs(d[:, 1]) > 1e-6, half_width / np.abs(d[:, 1]), np.inf))
+    ok = t < max_range
+    return (d[ok] * t[ok, None]).astype(np.float32)
+
+
+def pose_at(x: float, height: float = 1.7) -> np.ndarray:
+    T = np.eye(4)
+    T[0, 3], T[2, 3] = x, height
+    return T
