@@ -35,6 +35,7 @@ __all__ = [
     "level_voxels",
     "corner_keys",
     "corner_weights",
+    "corner_weights_and_grad",
     "interpolate",
     "init_features",
     "allocate_corners",
@@ -138,6 +139,32 @@ def corner_weights(points: jax.Array, leaf_vox: jax.Array, leaf: float, levels: 
     per_axis = off * f + (1.0 - off) * (1.0 - f)  # [N, L, 8, 3]
     w = per_axis[..., 0] * per_axis[..., 1] * per_axis[..., 2]  # [N, L, 8]
     return w.reshape(points.shape[0], levels * 8)
+
+
+def corner_weights_and_grad(points: jax.Array, leaf_vox: jax.Array, leaf: float, levels: int):
+    """Trilinear weights and their analytic derivatives w.r.t. the point.
+
+    Same weights as :func:`corner_weights`; ``dw[n, k, :] = d weights[n, k] / d points[n]`` in closed form
+    (d frac / dx = 1 / s_l inside the voxel, as the straight-through gradient there). The mapper's
+    eikonal term uses it: the weights do not depend on any parameter, so computing their gradient here
+    keeps autodiff from differentiating through them twice.
+
+    Returns: (weights [N, L*8] float32, dw [N, L*8, 3] float32).
+    """
+    points = jnp.asarray(points, jnp.float32)
+    vl = level_voxels(leaf_vox, levels).astype(jnp.float32)                     # [N, L, 3]
+    size = jnp.float32(leaf) * (2.0 ** jnp.arange(levels, dtype=jnp.float32))  # [L]
+    s = size[None, :, None]
+    frac = jnp.clip((points[:, None, :] - vl * s) / s, 0.0, 1.0)                # [N, L, 3]
+    off = jnp.asarray(CORNER_OFFSETS, jnp.float32)                              # [8, 3]
+    f = frac[:, :, None, :]                                                     # [N, L, 1, 3]
+    a = off * f + (1.0 - off) * (1.0 - f)                                       # [N, L, 8, 3]
+    da = (2.0 * off - 1.0) / s[..., None]                                       # [1, L, 8|1, 3]
+    w = a[..., 0] * a[..., 1] * a[..., 2]
+    dw = jnp.stack([da[..., 0] * a[..., 1] * a[..., 2], a[..., 0] * da[..., 1] * a[..., 2],
+                    a[..., 0] * a[..., 1] * da[..., 2]], axis=-1)               # [N, L, 8, 3]
+    n = points.shape[0]
+    return w.reshape(n, levels * 8), dw.reshape(n, levels * 8, 3)
 
 
 @jax.jit

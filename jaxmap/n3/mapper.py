@@ -31,7 +31,7 @@ from jaxmap.geometry import validate_pose
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
 from jaxmap.n3 import hierarchical, window
-from jaxmap.n3.decoder import init_decoder
+from jaxmap.n3.decoder import init_decoder, mlp_with_input_grad
 from jaxmap.n3.loss import bce_loss, eikonal_loss, sdf_and_grad
 from jaxmap.n3.sampling import sample_frame
 from jaxmap.preprocess import preprocess_scan
@@ -162,18 +162,16 @@ def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, st
         feat_count = jnp.zeros_like(feat_count)
     dec_tx = optax.adam(lr)
 
-    def loss_fn(feats, dec, b):
-        vox = store.coord[b.slots]                                               # [G, 3]
-        g, k = b.points.shape[:2]
-
-        def sdf_fn(pts):
-            w = gfeat.corner_weights(pts.reshape(-1, 3), jnp.repeat(vox, k, axis=0), leaf, levels)
-            f = jnp.einsum("gkc,gcd->gkd", w.reshape(g, k, -1), feats)
-            return module.apply(dec, f)
-
-        sdf, grad = sdf_and_grad(sdf_fn, b.points)
+    def loss_fn(feats, dec, w, dw, b):
+        f = jnp.einsum("gkc,gcd->gkd", w, feats)                                  # [G, K, D]
+        if weight_e > 0:
+            sdf, g_f = mlp_with_input_grad(dec, f)
+            # d sdf / dx = sum_c (feats_c . d sdf / d f) d w_c / dx, with w and dw fixed w.r.t. parameters
+            grad = jnp.einsum("gkc,gkcx->gkx", jnp.einsum("gkd,gcd->gkc", g_f, feats), dw)
+            l_eik = eikonal_loss(grad, b.mask & b.surface)
+        else:
+            sdf, l_eik = module.apply(dec, f), jnp.zeros(())
         l_bce = bce_loss(sdf, b.labels, beta, b.mask)
-        l_eik = eikonal_loss(grad, b.mask & b.surface)
         return l_bce + weight_e * l_eik, (l_bce, l_eik)
 
     grad_fn = jax.value_and_grad(loss_fn, argnums=(0, 1) if train_decoder else (0,), has_aux=True)
@@ -188,7 +186,11 @@ def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, st
             b = hierarchical.sample_uniform(k, store, ids, n, batch=batch, frame=frame, keyframes=keyframes)
         rows = voxel_corner_rows[jnp.maximum(store.voxel_of_slot[b.slots], 0)]   # [G, L*8]
         feats = table.at[rows].get(mode="fill", fill_value=0.0)                  # [G, L*8, D]
-        (loss, (l_bce, l_eik)), grads = grad_fn(feats, dec, b)
+        g, k = b.points.shape[:2]
+        vox = jnp.repeat(store.coord[b.slots], k, axis=0)                        # [G*K, 3]
+        w, dw = gfeat.corner_weights_and_grad(b.points.reshape(-1, 3), vox, leaf, levels)
+        w, dw = w.reshape(g, k, -1), dw.reshape(g, k, -1, 3)
+        (loss, (l_bce, l_eik)), grads = grad_fn(feats, dec, w, dw, b)
         table, mu, nu, cnt = sparse_adam(table, mu, nu, cnt, rows.reshape(-1),
                                          grads[0].reshape(-1, table.shape[1]), lr=lr)
         if train_decoder:
