@@ -53,3 +53,27 @@ def test_resolved_config_round_trips(tmp_path):
     save_config(cfg, tmp_path / "c.yaml")
     assert load_config(tmp_path / "c.yaml") == cfg
     assert load_config(None) == MapConfig()
+
+
+@pytest.mark.parametrize("name", ["city", "ncd", "rgbd"])
+def test_every_shipped_config_loads_and_sets_every_key(name):
+    """Each shipped config is valid and spells out every key, so it documents the full schema."""
+    import dataclasses
+
+    import yaml
+
+    cfg = load_config(f"configs/{name}.yaml")
+    raw = yaml.safe_load(open(f"configs/{name}.yaml"))
+
+    def keys(d, prefix=""):
+        return {prefix + k if not isinstance(v, dict) else x for k, v in d.items()
+                for x in (keys(v, prefix + k + ".") if isinstance(v, dict) else [prefix + k])}
+
+    def schema_keys(c, prefix=""):
+        out = set()
+        for f in dataclasses.fields(c):
+            v = getattr(c, f.name)
+            out |= schema_keys(v, prefix + f.name + ".") if dataclasses.is_dataclass(v) else {prefix + f.name}
+        return out
+
+    assert keys(raw) == schema_keys(cfg)
