@@ -72,14 +72,12 @@ def load_mapper(path: str):
     # A template with the saved capacities, so the restored arrays keep their exact structure.
     import jax.numpy as jnp
 
-    d = s.features.shape[1]
+    d = s.features.shape[-1]
     template = s.replace(
         voxels=hashing.create(cap["voxel_table"]), corners=hashing.create(cap["corner_table"]),
         voxel_coord=jnp.zeros((cap["voxel_rows"], 3), jnp.int32),
         voxel_corner_rows=jnp.zeros((cap["voxel_rows"], s.voxel_corner_rows.shape[1]), jnp.int32),
-        features=jnp.zeros((cap["feature_rows"], d), jnp.float32),
-        feat_mu=jnp.zeros((cap["feature_rows"], d), jnp.float32),
-        feat_nu=jnp.zeros((cap["feature_rows"], d), jnp.float32),
+        features=jnp.zeros((cap["feature_rows"], 4, d), jnp.float32),
         store=window.create(cap["store_blocks"], cfg.window.pairs_per_voxel, cap["voxel_rows"]),
     )
     restored = _checkpointer().restore(os.path.join(path, "state"), item=jax.device_get(template))

@@ -49,7 +49,7 @@ def test_resume_equals_uninterrupted(tmp_path):
     sc, vc = c.sdf(q)
     np.testing.assert_array_equal(va, vc)
     np.testing.assert_array_equal(sa, sc)
-    np.testing.assert_array_equal(np.asarray(a.state.features), np.asarray(c.state.features))
+    np.testing.assert_array_equal(np.asarray(a.state.features), np.asarray(c.state.features))  # values and moments
 
 
 def test_corridor_sdf_is_accurate_near_the_surfaces():

@@ -45,9 +45,7 @@ class N3State:
     corners: hashing.HashTable     # corner (x, y, z, level) -> feature row
     voxel_coord: jax.Array         # [V, 3] int32: leaf-voxel coordinate of each voxel row
     voxel_corner_rows: jax.Array   # [V, L*8] int32: feature rows of the voxel's corners, all levels
-    features: jax.Array            # [R, D] float32
-    feat_mu: jax.Array             # [R, D] float32: Adam first moment (persistent mode)
-    feat_nu: jax.Array             # [R, D] float32: Adam second moment
+    features: jax.Array            # [R, 4, D] float32: per row (value, Adam mu, Adam nu, grad accumulator)
     feat_count: jax.Array          # [] int32: Adam step count of the features
     decoder: dict                  # flax params of the SDF decoder
     dec_opt: optax.OptState        # Adam state of the decoder
@@ -116,39 +114,40 @@ def _slots_needed(store, vox_rows, center_vox, frame, *, radius_vox: int, mode: 
     return jnp.sum(touched & ~has_block), jnp.sum((store.voxel_of_slot < 0) | released)
 
 
-def sparse_adam(table, mu, nu, count, rows, grads, *, lr: float, b1: float = 0.9, b2: float = 0.999,
-                eps: float = 1e-8):
-    """Adam on the rows a batch touched ("lazy" Adam, as for sparse embeddings).
+VALUE, MU, NU, ACC = 0, 1, 2, 3  # the middle axis of N3State.features
 
-    table, mu, nu: [R, D]; count: [] int32 step; rows: [M] int32 (-1 ignored, duplicates allowed);
-    grads: [M, D] (duplicate rows are summed first, so this equals dense Adam's step on those rows).
-    Rows the batch does not touch keep their values and moments: the cost is O(M D), not O(R D).
+
+def sparse_adam(packed, count, rows, grads, *, lr: float, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8):
+    """Adam on the feature rows a batch touched ("lazy" Adam, as for sparse embeddings).
+
+    packed: [R, 4, D] (value, mu, nu, accumulator; the accumulator is zero between calls);
+    count: [] int32 step; rows: [M] int32 (-1 ignored, duplicates allowed); grads: [M, D].
+    Duplicate rows' gradients are summed in the accumulator first, so each touched row takes exactly
+    dense Adam's step; rows the batch does not touch keep values and moments. Every occurrence of a
+    row computes the same new values, so the scatter is deterministic. One scatter-add, one gather
+    and one scatter-set of [M, 4, D]: O(M D), not O(R D), and no sort.
     """
-    r, m = table.shape[0], rows.shape[0]
-    key = jnp.where(rows >= 0, rows, r)
-    order = jnp.argsort(key)
-    ks = key[order]
-    first = jnp.concatenate([jnp.ones((1,), bool), ks[1:] != ks[:-1]])
-    seg = jnp.cumsum(first) - 1                                                   # [M]
-    g = jax.ops.segment_sum(grads[order], seg, num_segments=m)                   # [M, D]
-    ru = jnp.full((m,), r, jnp.int32).at[seg].set(ks.astype(jnp.int32))          # [M], r = padding
+    r = packed.shape[0]
+    idx = jnp.where(rows >= 0, rows, r)                                          # r: dropped
+    packed = packed.at[idx, ACC].add(grads, mode="drop")
+    x = packed.at[idx].get(mode="fill", fill_value=0.0)                         # [M, 4, D]
     count = count + 1
     t = count.astype(jnp.float32)
-    mu_u = b1 * mu.at[ru].get(mode="fill", fill_value=0.0) + (1.0 - b1) * g
-    nu_u = b2 * nu.at[ru].get(mode="fill", fill_value=0.0) + (1.0 - b2) * g * g
-    step = lr * (mu_u / (1.0 - b1**t)) / (jnp.sqrt(nu_u / (1.0 - b2**t)) + eps)
-    p_u = table.at[ru].get(mode="fill", fill_value=0.0) - step
-    return (table.at[ru].set(p_u, mode="drop"), mu.at[ru].set(mu_u, mode="drop"),
-            nu.at[ru].set(nu_u, mode="drop"), count)
+    g = x[:, ACC]
+    mu = b1 * x[:, MU] + (1.0 - b1) * g
+    nu = b2 * x[:, NU] + (1.0 - b2) * g * g
+    value = x[:, VALUE] - lr * (mu / (1.0 - b1**t)) / (jnp.sqrt(nu / (1.0 - b2**t)) + eps)
+    new = jnp.stack([value, mu, nu, jnp.zeros_like(value)], axis=1)
+    return packed.at[idx].set(new, mode="drop"), count
 
 
 @functools.partial(
     jax.jit,
     static_argnames=("module", "iters", "hier", "nv", "np_", "nt", "batch", "keyframes", "leaf", "levels", "lr",
                      "beta", "weight_e", "train_decoder", "reset_adam"),
-    donate_argnums=(0, 1, 2),
+    donate_argnums=(0,),
 )
-def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, store, voxel_corner_rows,
+def _train_frame(features, feat_count, dec_params, dec_opt, store, voxel_corner_rows,
                  ids, n, key, frame, *, module, iters: int, hier: bool, nv: int, np_: int, nt: int, batch: int,
                  keyframes: int, leaf: float, levels: int, lr: float, beta: float, weight_e: float,
                  train_decoder: bool, reset_adam: bool):
@@ -158,7 +157,7 @@ def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, st
     large the map or the window; the decoder gets optax Adam until it is frozen.
     """
     if reset_adam:  # the original N3 code rebuilds its optimiser every frame
-        feat_mu, feat_nu = jnp.zeros_like(feat_mu), jnp.zeros_like(feat_nu)
+        features = features.at[:, MU:NU + 1].set(0.0)
         feat_count = jnp.zeros_like(feat_count)
     dec_tx = optax.adam(lr)
 
@@ -177,7 +176,7 @@ def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, st
     grad_fn = jax.value_and_grad(loss_fn, argnums=(0, 1) if train_decoder else (0,), has_aux=True)
 
     def body(i, carry):
-        table, mu, nu, cnt, dec, dec_state, key, acc = carry
+        table, cnt, dec, dec_state, key, acc = carry
         key, k = jax.random.split(key)
         if hier:
             b = hierarchical.sample_hierarchical(k, store, ids, n, nv=nv, np_=np_, nt=nt, frame=frame,
@@ -185,22 +184,21 @@ def _train_frame(features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, st
         else:
             b = hierarchical.sample_uniform(k, store, ids, n, batch=batch, frame=frame, keyframes=keyframes)
         rows = voxel_corner_rows[jnp.maximum(store.voxel_of_slot[b.slots], 0)]   # [G, L*8]
-        feats = table.at[rows].get(mode="fill", fill_value=0.0)                  # [G, L*8, D]
+        feats = table[rows, VALUE]                                               # [G, L*8, D]
         g, k = b.points.shape[:2]
         vox = jnp.repeat(store.coord[b.slots], k, axis=0)                        # [G*K, 3]
         w, dw = gfeat.corner_weights_and_grad(b.points.reshape(-1, 3), vox, leaf, levels)
         w, dw = w.reshape(g, k, -1), dw.reshape(g, k, -1, 3)
         (loss, (l_bce, l_eik)), grads = grad_fn(feats, dec, w, dw, b)
-        table, mu, nu, cnt = sparse_adam(table, mu, nu, cnt, rows.reshape(-1),
-                                         grads[0].reshape(-1, table.shape[1]), lr=lr)
+        table, cnt = sparse_adam(table, cnt, rows.reshape(-1), grads[0].reshape(-1, table.shape[-1]), lr=lr)
         if train_decoder:
             dupd, dec_state = dec_tx.update(grads[1], dec_state, dec)
             dec = optax.apply_updates(dec, dupd)
-        return table, mu, nu, cnt, dec, dec_state, key, acc + jnp.stack([loss, l_bce, l_eik])
+        return table, cnt, dec, dec_state, key, acc + jnp.stack([loss, l_bce, l_eik])
 
-    carry = (features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, key, jnp.zeros((3,)))
-    features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, _, acc = jax.lax.fori_loop(0, iters, body, carry)
-    return features, feat_mu, feat_nu, feat_count, dec_params, dec_opt, acc / iters
+    carry = (features, feat_count, dec_params, dec_opt, key, jnp.zeros((3,)))
+    features, feat_count, dec_params, dec_opt, _, acc = jax.lax.fori_loop(0, iters, body, carry)
+    return features, feat_count, dec_params, dec_opt, acc / iters
 
 
 @functools.partial(jax.jit, static_argnames=("module", "leaf", "levels"))
@@ -211,7 +209,7 @@ def _query(features, voxel_corner_rows, voxels, decoder, points_m, *, module, le
     valid = vrow >= 0
     rows = voxel_corner_rows[jnp.maximum(vrow, 0)]
     w = gfeat.corner_weights(points_m, vox, leaf, levels)
-    f = gfeat.interpolate(features, jnp.where(valid[:, None], rows, -1), w)
+    f = gfeat.interpolate(features[:, VALUE], jnp.where(valid[:, None], rows, -1), w)
     return module.apply(decoder, f), valid
 
 
@@ -257,9 +255,7 @@ class N3Mapper:
             corners=hashing.create(_pow2(n_rows * 2)),
             voxel_coord=jnp.zeros((n_vox, 3), jnp.int32),
             voxel_corner_rows=jnp.full((n_vox, self.levels * 8), -1, jnp.int32),
-            features=feat,
-            feat_mu=jnp.zeros_like(feat),
-            feat_nu=jnp.zeros_like(feat),
+            features=_pack(feat),
             feat_count=jnp.zeros((), jnp.int32),
             decoder=dec_params,
             dec_opt=optax.adam(t.lr).init(dec_params),
@@ -285,16 +281,14 @@ class N3Mapper:
 
     def _ensure_feature_rows(self, n: int):
         s = self.state
-        r, d = s.features.shape
+        r, _, d = s.features.shape
         if n <= r:
             return
         nr = _pow2(n)
         log.debug("growing feature table %d -> %d rows", r, nr)
         key = jax.random.fold_in(jax.random.PRNGKey(self.cfg.train.seed + 2), r)
-        extra = gfeat.init_features(key, nr - r, d, self.cfg.grid.feature_std)
-        z = jnp.zeros((nr - r, d), jnp.float32)
-        self.state = s.replace(features=jnp.concatenate([s.features, extra]),
-                               feat_mu=jnp.concatenate([s.feat_mu, z]), feat_nu=jnp.concatenate([s.feat_nu, z]))
+        extra = _pack(gfeat.init_features(key, nr - r, d, self.cfg.grid.feature_std))
+        self.state = s.replace(features=jnp.concatenate([s.features, extra]))
 
     # ---- the per-frame update ----
 
@@ -392,14 +386,14 @@ class N3Mapper:
 
         tc = cfg.train
         train_decoder = int(frame) < tc.freeze_after_frame
-        feats, mu, nu, cnt, dec, dec_opt, losses = _train_frame(
-            s.features, s.feat_mu, s.feat_nu, s.feat_count, s.decoder, s.dec_opt, s.store, s.voxel_corner_rows,
+        feats, cnt, dec, dec_opt, losses = _train_frame(
+            s.features, s.feat_count, s.decoder, s.dec_opt, s.store, s.voxel_corner_rows,
             ids, n_win, k_train, frame, module=self.module, iters=tc.iters, hier=tc.hierarchical, nv=tc.nv,
             np_=tc.np_per_voxel, nt=tc.nt, batch=tc.batch_size, keyframes=keyframes, leaf=self.leaf,
             levels=self.levels, lr=tc.lr, beta=tc.sigma_sigmoid_m, weight_e=tc.weight_e,
             train_decoder=train_decoder, reset_adam=tc.reset_adam_each_frame)
         losses = np.asarray(losses)
-        self.state = s.replace(features=feats, feat_mu=mu, feat_nu=nu, feat_count=cnt, decoder=dec,
+        self.state = s.replace(features=feats, feat_count=cnt, decoder=dec,
                                dec_opt=dec_opt, key=key, frame=frame + 1)
         t3 = time.perf_counter()
         info = {
@@ -407,7 +401,7 @@ class N3Mapper:
             "training_s": t3 - t2, "total_s": t3 - t0, "loss": float(losses[0]), "bce": float(losses[1]),
             "eikonal": float(losses[2]), "window_voxels": int(n_win), "store_pairs": int(window.total_pairs(s.store)),
             "store_bytes": store_bytes(s.store), "leaf_voxels": int(s.voxels.count),
-            "feature_rows": int(s.corners.count), "feature_bytes": int(s.corners.count) * s.features.shape[1] * 4,
+            "feature_rows": int(s.corners.count), "feature_bytes": int(s.corners.count) * s.features.shape[-1] * 4,
             "free_dropped": n_free_dropped,
         }
         self.timings.append(info)
@@ -480,6 +474,11 @@ class N3Mapper:
         from jaxmap.checkpoint import load_mapper
 
         return load_mapper(path)
+
+
+def _pack(values):
+    """[R, D] initial feature values -> [R, 4, D] (value, mu = 0, nu = 0, accumulator = 0)."""
+    return jnp.concatenate([values[:, None], jnp.zeros((values.shape[0], 3, values.shape[1]), values.dtype)], 1)
 
 
 def store_bytes(store: window.PairStore) -> int:
