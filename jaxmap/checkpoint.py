@@ -21,7 +21,11 @@ from jaxmap.errors import DataError
 
 
 def _checkpointer():
+    import logging
+
     import orbax.checkpoint as ocp
+
+    logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every rename at INFO
 
     return ocp.PyTreeCheckpointer()
 
@@ -60,6 +64,7 @@ def load_mapper(path: str):
     from jaxmap.n3 import window
     from jaxmap.n3.mapper import N3Mapper
 
+    path = os.path.abspath(path)  # orbax only takes absolute paths
     meta_path = os.path.join(path, "meta.json")
     if not os.path.isfile(meta_path):
         raise DataError(f"{path}: not a jaxmap checkpoint (no meta.json); pass RUN_DIR/checkpoint")

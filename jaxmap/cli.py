@@ -38,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=0.1, help="F-score threshold in metres")
     p.add_argument("--cull", type=float, default=0.3, help="cull GT farther than this from every scan point (m)")
     p.add_argument("--radius", type=float, default=-1.0, help="keep GT within this range of a sensor position (m)")
+    p.add_argument("--max-range", type=float, default=-1.0,
+                   help="count as observed only scan points within this range of their sensor (the mapper's crop)")
 
     p = sub.add_parser("baseline", help="classical baselines on the same data")
     p.add_argument("method", choices=["tsdf"])
@@ -104,7 +106,7 @@ def _dispatch(args) -> int:
         from jaxmap.metrics import evaluate_mesh_file
 
         m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
-                               cull_distance_m=args.cull, eval_radius_m=args.radius)
+                               cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range)
         out = os.path.splitext(args.mesh)[0] + ".metrics.json"
         with open(out, "w") as f:
             json.dump(m, f)

@@ -104,6 +104,8 @@ class WindowConfig:
 class MeshConfig:
     resolution_m: float = 0.1
     min_component_faces: int = 50    # drop connected components smaller than this
+    mask_level: int = 1              # mesh inside allocated voxels of this feature level (0 = leaf)
+    min_leaf_corners: int = 6        # ... where at least this many leaf-voxel corners have features
 
 
 @dataclass(frozen=True)

@@ -234,12 +234,15 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: int | None = None,
                        progress: bool = False, begin_frame: int = 0, end_frame: int = -1,
-                       every_frame: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                       every_frame: int = 1, min_range_m: float = 0.0,
+                       max_range_m: float = -1.0) -> tuple[np.ndarray, np.ndarray]:
     """All scan points of a sequence in the world frame, thinned to one per voxel_m voxel, and the sensor
     positions (pose translations of every frame). Returns (observed [O,3] float64, sensors [S,3] float64).
 
     max_frames: use at most this many frames, evenly spaced, for the observed points (all frames'
     positions are still returned). begin_frame/end_frame/every_frame: the frames a run mapped.
+    min_range_m/max_range_m (> 0): keep only scan points in that range of their sensor, i.e. what a
+    mapper that crops its input saw (GT seen only from farther away cannot be reconstructed by it).
     """
     from jaxmap.geometry import transform_points
     from jaxmap.io import open_sequence
@@ -260,6 +263,9 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
         frames = tqdm(seq, total=len(seq), desc="observed points", unit="frame")
     for frame in frames:
         pts = np.asarray(frame.points, dtype=np.float64)
+        if max_range_m > 0 or min_range_m > 0:
+            r = np.linalg.norm(pts, axis=1)
+            pts = pts[(r >= min_range_m) & ((r <= max_range_m) | (max_range_m <= 0))]
         if len(pts) == 0:
             continue
         w = transform_points(np.asarray(frame.pose, dtype=np.float64), pts)
@@ -277,14 +283,14 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
 def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_distance_m: float = 0.3,
                        eval_radius_m: float = -1.0, n_samples: int = 1_000_000,
                        max_frames_for_culling: int | None = None, begin_frame: int = 0, end_frame: int = -1,
-                       every_frame: int = 1) -> dict:
+                       every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0) -> dict:
     """Metrics of a mesh file against a sequence directory's ground truth (what `jaxmap eval` prints).
 
     Reads the mesh (PLY/OBJ/... via trimesh), ``data_dir/gt_points.ply`` (GT surface points, world frame)
     and every scan of the sequence (observed points = scan points in the world frame, thinned to 5 cm;
     sensor positions = pose translations), then calls :func:`evaluate_mesh`; with ``gt_mesh.ply``
     present, Accuracy is measured against that surface. begin/end/every_frame select the frames whose
-    scans count as observed (those a run mapped).
+    scans count as observed (those a run mapped); min/max_range_m crop them as the mapper did.
     """
     from jaxmap.io import read_points_ply
 
@@ -307,7 +313,8 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
         raise DataError(f"{gt_path}: expected a non-empty point cloud, got shape {gt.shape}")
     gt = gt[:, :3]
     observed, sensors = observed_points_of(data_dir, max_frames=max_frames_for_culling, begin_frame=begin_frame,
-                                           end_frame=end_frame, every_frame=every_frame)
+                                           end_frame=end_frame, every_frame=every_frame,
+                                           min_range_m=min_range_m, max_range_m=max_range_m)
     gt_mesh_path = os.path.join(data_dir, "gt_mesh.ply")
     gt_mesh = _load_mesh(gt_mesh_path) if os.path.isfile(gt_mesh_path) else None
     log.info("eval: %d GT points, %d observed points (5 cm), %d sensor positions",

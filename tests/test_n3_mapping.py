@@ -70,7 +70,7 @@ def test_corridor_sdf_is_accurate_near_the_surfaces():
     assert np.median(np.abs(np.linalg.norm(g, axis=1) - 1.0)) < 0.2  # roughly an SDF, not just a sign
 
 
-def test_small_city_maps_to_a_mesh_close_to_ground_truth(small_city, tmp_path):
+def test_small_city_maps_to_a_mesh_close_to_ground_truth(small_city, tmp_path, monkeypatch):
     """The whole `jaxmap map` run on the small synthetic city: run directory layout and quality.
     Bound: C-L1 < 10 cm at 0.2 m voxels with very few iterations (the default city with the paper's
     settings reaches ~3-5 cm, see the benchmark); a wrong sign, frame or label breaks it by far."""
@@ -85,6 +85,36 @@ def test_small_city_maps_to_a_mesh_close_to_ground_truth(small_city, tmp_path):
     m = json.loads((out / "metrics.json").read_text())
     assert m["chamfer_l1_cm"] < 10.0, m
     assert m["f_score"] > 70.0, m
-    # Re-extract a mesh from the checkpoint at another resolution.
-    assert main(["mesh", str(out), "--res", "0.2"]) == 0
+    # Re-extract a mesh from the checkpoint at another resolution (a relative run path, as users type it).
+    monkeypatch.chdir(tmp_path)
+    assert main(["mesh", "run", "--res", "0.2"]) == 0
     assert (out / "mesh_0.2.ply").exists()
+
+
+def test_ctrl_c_leaves_a_checkpoint_and_resume_finishes_the_same_map(small_city, tmp_path, monkeypatch):
+    """KeyboardInterrupt during frame 2 -> checkpoint of frames 0-1; `--resume` gives the same map as
+    an uninterrupted run."""
+    import jaxmap.n3.mapper as mapper_mod
+    from jaxmap.cli import main
+
+    args = ["--no-progress", "--data", str(small_city), "--set", "data.end_frame=4", "--set", "train.iters=3",
+            "--set", "train.nv=64", "--set", "eval.n_samples=20000", "--set", "mesh.resolution_m=0.2"]
+    assert main(["map", "configs/city.yaml", "--out", str(tmp_path / "full")] + args) == 0
+
+    real = mapper_mod.N3Mapper.add_frame
+
+    def interrupt_at_2(self, points, pose):
+        if int(self.state.frame) == 2:
+            raise KeyboardInterrupt
+        return real(self, points, pose)
+
+    monkeypatch.setattr(mapper_mod.N3Mapper, "add_frame", interrupt_at_2)
+    assert main(["map", "configs/city.yaml", "--out", str(tmp_path / "cut")] + args) == 130
+    meta = json.loads((tmp_path / "cut" / "checkpoint" / "meta.json").read_text())
+    assert meta["frame"] == 2
+    monkeypatch.setattr(mapper_mod.N3Mapper, "add_frame", real)
+    assert main(["map", "--resume", str(tmp_path / "cut"), "--no-progress"]) == 0
+    a = N3Mapper.load(str(tmp_path / "full" / "checkpoint"))
+    b = N3Mapper.load(str(tmp_path / "cut" / "checkpoint"))
+    assert int(b.state.frame) == 4
+    np.testing.assert_array_equal(np.asarray(a.state.features), np.asarray(b.state.features))

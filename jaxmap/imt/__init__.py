@@ -1,0 +1,29 @@
+"""Transformable neural implicit maps (IMT): the SO(3)-equivariant prior and, later, the latent map.
+
+The prior (`load_prior()`) turns the points and normals around a voxel into a latent `[18, 3]` of
+3-vectors that rotates exactly with the input, and decodes a latent and a query position into an
+SDF mean and standard deviation (voxel units) that are exactly invariant to a common rotation.
+`rotate(tree, R)` rotates every `Vec`/`Jac`-marked leaf of a pytree (see `jaxmap.imt.vn`).
+"""
+from jaxmap.imt.decoder import Decoder, DecoderConfig
+from jaxmap.imt.encoder import Encoder, EncoderConfig, encode, encode_with_jacobian
+from jaxmap.imt.prior import Prior, PriorConfig, init_prior, load_prior, save_prior
+from jaxmap.imt.vn import (
+    Jac,
+    Vec,
+    VNLeakyReLU,
+    VNLinear,
+    gram_upper,
+    invariant_features,
+    rotate,
+    rotate_jacobians,
+    rotate_vectors,
+    vn_inner,
+    vn_mean_pool,
+)
+
+__all__ = [
+    "Decoder", "DecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",
+    "VNLinear", "Vec", "encode", "encode_with_jacobian", "gram_upper", "init_prior", "invariant_features",
+    "load_prior", "rotate", "rotate_jacobians", "rotate_vectors", "save_prior", "vn_inner", "vn_mean_pool",
+]

@@ -201,26 +201,46 @@ def _train_frame(features, feat_count, dec_params, dec_opt, store, voxel_corner_
     return features, feat_count, dec_params, dec_opt, acc / iters
 
 
-@functools.partial(jax.jit, static_argnames=("module", "leaf", "levels"))
-def _query(features, voxel_corner_rows, voxels, decoder, points_m, *, module, leaf: float, levels: int):
-    """SDF at map-frame points [N,3] -> (sdf [N], valid [N]); valid where the leaf voxel has features."""
-    vox, keys = _leaf_keys(points_m, leaf)
-    vrow = hashing.lookup(voxels, keys)
-    valid = vrow >= 0
-    rows = voxel_corner_rows[jnp.maximum(vrow, 0)]
+@functools.partial(jax.jit, static_argnames=("module", "leaf", "levels", "mask_level", "min_leaf_corners"))
+def _query(features, corners, decoder, points_m, *, module, leaf: float, levels: int, mask_level: int,
+           min_leaf_corners: int = 8):
+    """SDF at map-frame points [N,3] -> (sdf [N], valid [N]).
+
+    A point is valid where the 8 corners of its level-`mask_level` voxel have features (0 = only inside
+    allocated leaf voxels; 1 = inside their 2x parents, which closes the gaps between LiDAR rings on
+    grazing ground, as SHINE/N3 mesh at `mc_vis_level` 1), and at least `min_leaf_corners` of the 8
+    corners of its leaf voxel have features (8 ~ allocated leaf voxels; fewer dilates the leaf region by
+    up to one voxel without filling whole parents). Corners without features count as zero.
+    """
+    vox = gfeat.leaf_voxel(points_m, leaf)
+    keys = gfeat.corner_keys(vox, levels)                                       # [N, L*8, 4]
+    rows = hashing.lookup(corners, keys.reshape(-1, 4)).reshape(keys.shape[:2])
+    valid = jnp.all(rows[:, mask_level * 8:(mask_level + 1) * 8] >= 0, axis=1)
+    valid &= jnp.sum(rows[:, :8] >= 0, axis=1) >= min_leaf_corners
     w = gfeat.corner_weights(points_m, vox, leaf, levels)
-    f = gfeat.interpolate(features[:, VALUE], jnp.where(valid[:, None], rows, -1), w)
+    f = gfeat.interpolate(features[:, VALUE], rows, w)
     return module.apply(decoder, f), valid
 
 
-@functools.partial(jax.jit, static_argnames=("module", "leaf", "levels"))
-def _query_grad(features, voxel_corner_rows, voxels, decoder, points_m, *, module, leaf: float, levels: int):
+@functools.partial(jax.jit, static_argnames=("module", "leaf", "levels", "mask_level", "min_leaf_corners"))
+def _query_grad(features, corners, decoder, points_m, *, module, leaf: float, levels: int, mask_level: int,
+                min_leaf_corners: int = 8):
     def f(p):
-        return _query(features, voxel_corner_rows, voxels, decoder, p, module=module, leaf=leaf,
-                      levels=levels)[0]
+        return _query(features, corners, decoder, p, module=module, leaf=leaf, levels=levels,
+                      mask_level=mask_level, min_leaf_corners=min_leaf_corners)[0]
 
     sdf, grad = sdf_and_grad(f, points_m)
     return sdf, grad
+
+
+def mesh_cells(leaf_voxels: np.ndarray, mask_level: int) -> np.ndarray:
+    """Leaf cells [M,3] covered by the level-`mask_level` parents of allocated leaf voxels [N,3]."""
+    if mask_level == 0 or len(leaf_voxels) == 0:
+        return leaf_voxels
+    k = 1 << mask_level
+    parents = np.unique(np.floor_divide(leaf_voxels, k), axis=0)
+    offs = np.stack(np.meshgrid(*[np.arange(k)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    return (parents[:, None, :] * k + offs[None]).reshape(-1, 3).astype(np.int32)
 
 
 # --------------------------------------------------------------------------------------------
@@ -419,8 +439,9 @@ class N3Mapper:
             m = len(chunk)
             if m < batch:
                 chunk = np.concatenate([chunk, np.zeros((batch - m, 3), np.float32)])
-            res = fn(s.features, s.voxel_corner_rows, s.voxels, s.decoder, jnp.asarray(chunk), module=self.module,
-                     leaf=self.leaf, levels=self.levels)
+            res = fn(s.features, s.corners, s.decoder, jnp.asarray(chunk), module=self.module,
+                     leaf=self.leaf, levels=self.levels, mask_level=self.cfg.mesh.mask_level,
+                     min_leaf_corners=self.cfg.mesh.min_leaf_corners)
             out.append([np.asarray(r)[:m] for r in res])
         if not out:
             return None
@@ -447,7 +468,7 @@ class N3Mapper:
         res = float(res or self.cfg.mesh.resolution_m)
         mcf = self.cfg.mesh.min_component_faces if min_component_faces is None else min_component_faces
         n = int(self.state.voxels.count)
-        cells = np.asarray(self.state.voxel_coord[:n])
+        cells = mesh_cells(np.asarray(self.state.voxel_coord[:n]), self.cfg.mesh.mask_level)
         origin = self.origin if self.origin is not None else np.zeros(3)
         # Lattice aligned to the world origin (one fixed grid for every method): res must divide leaf.
         k = self.leaf / res

@@ -112,9 +112,10 @@ def finish_run(mapper, cfg: MapConfig, out_dir: str, seq, evaluate: bool = True)
 
 
 def _frame_selection(cfg: MapConfig) -> dict:
-    """The frames a run mapped, so that GT culling uses exactly what the mapper saw."""
+    """The frames and range a run mapped, so that GT culling uses exactly what the mapper saw."""
     return {"begin_frame": cfg.data.begin_frame, "end_frame": cfg.data.end_frame,
-            "every_frame": cfg.data.every_frame}
+            "every_frame": cfg.data.every_frame, "min_range_m": cfg.preprocess.min_range_m,
+            "max_range_m": cfg.preprocess.max_range_m}
 
 
 def _config_from_args(args) -> MapConfig:
