@@ -1,9 +1,7 @@
 """N3 mapping end to end: bounded memory, resume == uninterrupted, mesh quality, run directory."""
 import json
-import os
 
 import numpy as np
-import pytest
 
 from analytic_lidar import corridor_scan, pose_at
 from jaxmap.config import load_config

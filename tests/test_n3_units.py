@@ -2,7 +2,6 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from jaxmap.n3 import hierarchical, window
 from jaxmap.n3.loss import bce_loss, eikonal_loss, sdf_and_grad

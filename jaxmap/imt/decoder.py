@@ -19,7 +19,6 @@ from dataclasses import dataclass
 
 import flax.linen as nn
 import jax
-import jax.numpy as jnp
 
 from jaxmap.imt.vn import invariant_features
 

@@ -13,10 +13,8 @@ float32 stays precise on large scenes; `sdf()` and `mesh()` take and return worl
 from __future__ import annotations
 
 import functools
-import json
 import logging
 import math
-import os
 import time
 
 import flax.struct
