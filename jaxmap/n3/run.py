@@ -98,7 +98,10 @@ def finish_run(mapper, cfg: MapConfig, out_dir: str, seq, evaluate: bool = True)
     with open(os.path.join(out_dir, "timing.json"), "w") as f:
         json.dump(timing, f)
     summary = {"run": out_dir, "mesh": mesh_path, "faces": int(len(mesh.faces)), **timing["summary"]}
-    if evaluate and seq.gt_points_path:
+    if evaluate and seq.gt_points_path and len(mesh.faces) == 0:
+        log.warning("the mesh is empty (too few frames or iterations?): no metrics written; the map is in %s",
+                    os.path.join(out_dir, "checkpoint"))
+    elif evaluate and seq.gt_points_path:
         from jaxmap.metrics import evaluate_mesh_file
 
         radius = cfg.eval.eval_radius_m
