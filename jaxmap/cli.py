@@ -77,10 +77,29 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _enable_compilation_cache() -> None:
+    """Keep XLA compilations on disk, so a second run skips the compiles that table growth triggers.
+    JAXMAP_CACHE_DIR overrides the place; an empty value turns the cache off."""
+    path = os.environ.get("JAXMAP_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "jaxmap", "xla"))
+    if not path:
+        return
+    import jax
+
+    try:
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    except Exception as e:  # an old jax without the option: run uncached rather than fail
+        logging.getLogger("jaxmap").debug("no persistent compilation cache: %s", e)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO,
-                        format="[jaxmap] %(message)s", stream=sys.stderr)
+    # Our messages at INFO; other libraries' (jax's backend probing, orbax) only from WARNING. Records
+    # of the "jaxmap" logger pass its own level and then reach the root handler whatever the root level.
+    logging.basicConfig(level=logging.WARNING, format="[%(name)s] %(message)s", stream=sys.stderr)
+    ours = logging.getLogger("jaxmap")
+    ours.setLevel(logging.DEBUG if args.verbose else logging.INFO)
+    _enable_compilation_cache()
     from jaxmap.errors import JaxmapError
 
     try:

@@ -19,7 +19,7 @@ import os
 import numpy as np
 
 from jaxmap.errors import DataError
-from jaxmap.io.kitti import Sequence, read_poses
+from jaxmap.io.kitti import Sequence, read_poses_for
 from jaxmap.io.pointcloud import _makedirs_for, natural_key
 
 log = logging.getLogger("jaxmap")
@@ -131,18 +131,9 @@ class DepthSequence(Sequence):
         fx, fy, cx, cy, scale = read_intrinsics(os.path.join(data_dir, "intrinsics.txt"))
         self.intrinsics = (fx, fy, cx, cy)
         self.depth_scale = scale
-        poses_path = os.path.join(data_dir, "poses.txt")
-        if not os.path.isfile(poses_path):
-            raise DataError(f"{poses_path}: missing; a depth sequence needs poses.txt with one line of 12 numbers "
-                            "(row-major 3x4 T_world_camera) per image")
-        poses = read_poses(poses_path)
-        if len(poses) < len(names):
-            raise DataError(f"{poses_path}: {len(poses)} poses for {len(names)} depth images in {depth_dir}; "
-                            "poses.txt needs one line per image")
-        if len(poses) > len(names):
-            log.warning("%s: %d poses for %d depth images; using the first %d poses", poses_path, len(poses),
-                        len(names), len(names))
-            poses = poses[: len(names)]
+        poses = read_poses_for(os.path.join(data_dir, "poses.txt"), len(names), "depth images", depth_dir,
+                               "a depth sequence needs poses.txt with one line of 12 numbers "
+                               "(row-major 3x4 T_world_camera) per image")
         super().__init__(data_dir, len(names), poses, begin_frame, end_frame, every_frame)
 
     def read_depth(self, index: int) -> np.ndarray:

@@ -156,6 +156,24 @@ def _fmt(x: float) -> str:
     return repr(float(x))  # shortest string that round-trips the float64 exactly
 
 
+def read_poses_for(poses_path: str, n_items: int, what: str, item_dir: str, need: str) -> np.ndarray:
+    """Poses [n_items,4,4] from `poses_path` for a sequence of `n_items` `what` (scans, depth images).
+
+    A missing file or fewer lines than items is a DataError naming the file and `need` (what the
+    layout expects); extra lines are ignored with a warning.
+    """
+    if not os.path.isfile(poses_path):
+        raise DataError(f"{poses_path}: missing; {need}")
+    poses = read_poses(poses_path)
+    if len(poses) < n_items:
+        raise DataError(f"{poses_path}: {len(poses)} poses for {n_items} {what} in {item_dir}; "
+                        f"poses.txt needs one line per {what[:-1]}")
+    if len(poses) > n_items:
+        log.warning("%s: %d poses for %d %s; using the first %d poses", poses_path, len(poses), n_items, what,
+                    n_items)
+    return poses[:n_items]
+
+
 def write_poses(path, poses) -> None:
     """Write poses [M,4,4] (or [M,3,4]) as KITTI lines of 12 numbers; float64 values round-trip exactly."""
     poses = np.asarray(poses, dtype=np.float64)
@@ -255,18 +273,9 @@ class KittiSequence(Sequence):
         if not scans:
             raise DataError(f"{scan_dir}: no scans found; expected files *.bin (KITTI float32 x,y,z,i), "
                             "*.ply or *.pcd")
-        poses_path = os.path.join(data_dir, "poses.txt")
-        if not os.path.isfile(poses_path):
-            raise DataError(f"{poses_path}: missing; a KITTI sequence needs poses.txt with one line of 12 numbers "
-                            "(row-major 3x4) per scan")
-        poses_cam = read_poses(poses_path)
-        if len(poses_cam) < len(scans):
-            raise DataError(f"{poses_path}: {len(poses_cam)} poses for {len(scans)} scans in {scan_dir}; "
-                            "poses.txt needs one line per scan")
-        if len(poses_cam) > len(scans):
-            log.warning("%s: %d poses for %d scans; using the first %d poses", poses_path, len(poses_cam),
-                        len(scans), len(scans))
-            poses_cam = poses_cam[: len(scans)]
+        poses_cam = read_poses_for(os.path.join(data_dir, "poses.txt"), len(scans), "scans", scan_dir,
+                                   "a KITTI sequence needs poses.txt with one line of 12 numbers (row-major 3x4) "
+                                   "per scan")
         calib_path = os.path.join(data_dir, "calib.txt")
         if os.path.isfile(calib_path):
             Tr = read_calib(calib_path)
