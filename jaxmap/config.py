@@ -55,7 +55,7 @@ class SamplingConfig:
     label_mode: str = "normal"       # "normal" (N3), "projective", "corrected" (ablations)
     surface_sample_range_m: float = 0.3   # truncation band half-width (tr)
     surface_sample_n: int = 3
-    sigma_m: float = 0.1             # std of the Gaussian offset inside the band
+    sigma_m: float = 0.05            # std of the Gaussian offset inside the band (~ range noise)
     free_sample_n: int = 3
     free_band_m: float = 1.0         # free samples lie in the last free_band_m before the band
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
