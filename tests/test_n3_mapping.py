@@ -52,7 +52,9 @@ def test_resume_equals_uninterrupted(tmp_path):
 
 def test_corridor_sdf_is_accurate_near_the_surfaces():
     """After a few frames, the SDF near the ground and walls is within 3 cm of the truth."""
-    m = _mapper(["train.iters=40", "train.nv=512"])
+    # sigma 0.1 spreads samples over the 2-20 cm band queried here; the city default (0.05) meshes
+    # better but supervises that band less, and |grad| drifts ~30 % from 1 there (see configs/city.yaml).
+    m = _mapper(["train.iters=40", "train.nv=512", "sampling.sigma_m=0.1"])
     for i in range(5):
         m.add_frame(corridor_scan(1.0 * i, beams=32, steps=512, max_range=10.0), pose_at(1.0 * i))
     rng = np.random.default_rng(1)
