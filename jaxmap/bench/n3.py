@@ -45,7 +45,7 @@ def main(args) -> int:
     from jaxmap.baselines.tsdf import tsdf_from_sequence
     from jaxmap.config import load_config
     from jaxmap.metrics import evaluate_mesh_file
-    from jaxmap.n3.run import _frame_selection, map_sequence
+    from jaxmap.n3.run import _frame_selection, city_config_path, map_sequence
     from jaxmap.synth.city import generate_city
 
     data, out = args.data, args.out
@@ -57,7 +57,7 @@ def main(args) -> int:
     if args.frames:
         base.append(f"data.end_frame={args.frames}")
     names = list(VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
-    cfg0 = load_config("configs/city.yaml" if os.path.isfile("configs/city.yaml") else None, base)
+    cfg0 = load_config(city_config_path(), base)
     results = {}
 
     if not args.only or "tsdf" in names:
@@ -80,8 +80,7 @@ def main(args) -> int:
             continue
         if name not in VARIANTS:
             raise SystemExit(f"unknown variant {name!r}; choose from tsdf, {', '.join(VARIANTS)}")
-        cfg = load_config("configs/city.yaml" if os.path.isfile("configs/city.yaml") else None,
-                          base + VARIANTS[name] + [f"output={os.path.join(out, name)}"])
+        cfg = load_config(city_config_path(), base + VARIANTS[name] + [f"output={os.path.join(out, name)}"])
         summary = map_sequence(cfg, cfg.output, progress=True)
         with open(os.path.join(cfg.output, "timing.json")) as f:
             frames = json.load(f)["frames"]

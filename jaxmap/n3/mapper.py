@@ -81,11 +81,6 @@ def _set_rows(arr, rows, values):
     return arr.at[tgt].set(values, mode="drop")
 
 
-@functools.partial(jax.jit, static_argnames=("levels",))
-def _corner_keys(coords, levels: int):
-    return gfeat.corner_keys(coords, levels)
-
-
 @functools.partial(jax.jit, static_argnames=("radius_vox", "mode", "keyframes"), donate_argnums=(0,))
 def _update_store(store, vox_rows, vox_coords, points, labels, surface, frame, center_vox, *,
                   radius_vox: int, mode: str, keyframes: int):
@@ -183,10 +178,10 @@ def _train_frame(features, feat_count, dec_params, dec_opt, store, voxel_corner_
             b = hierarchical.sample_uniform(k, store, ids, n, batch=batch, frame=frame, keyframes=keyframes)
         rows = voxel_corner_rows[jnp.maximum(store.voxel_of_slot[b.slots], 0)]   # [G, L*8]
         feats = table[rows, VALUE]                                               # [G, L*8, D]
-        g, k = b.points.shape[:2]
-        vox = jnp.repeat(store.coord[b.slots], k, axis=0)                        # [G*K, 3]
+        n_groups, per_group = b.points.shape[:2]
+        vox = jnp.repeat(store.coord[b.slots], per_group, axis=0)                # [G*K, 3]
         w, dw = gfeat.corner_weights_and_grad(b.points.reshape(-1, 3), vox, leaf, levels)
-        w, dw = w.reshape(g, k, -1), dw.reshape(g, k, -1, 3)
+        w, dw = w.reshape(n_groups, per_group, -1), dw.reshape(n_groups, per_group, -1, 3)
         (loss, (l_bce, l_eik)), grads = grad_fn(feats, dec, w, dw, b)
         table, cnt = sparse_adam(table, cnt, rows.reshape(-1), grads[0].reshape(-1, table.shape[-1]), lr=lr)
         if train_decoder:
@@ -367,11 +362,10 @@ class N3Mapper:
             m_pad = _bucket(len(new_rows))
             rows_p = np.full(m_pad, -1, np.int32)
             rows_p[: len(new_rows)] = new_rows
-            ck = _corner_keys(voxel_coord[jnp.maximum(jnp.asarray(rows_p), 0)], self.levels)   # [M, L*8, 4]
-            cvalid = jnp.broadcast_to(jnp.asarray(rows_p >= 0)[:, None], ck.shape[:2])
-            corners, crows = hashing.insert_grow(corners, ck.reshape(-1, 4), cvalid.reshape(-1),
-                                                 max_load=cfg.grid.max_load)
-            voxel_corner_rows = _set_rows(voxel_corner_rows, jnp.asarray(rows_p), crows.reshape(m_pad, -1))
+            corners, crows = gfeat.allocate_corners(corners, voxel_coord[jnp.maximum(jnp.asarray(rows_p), 0)],
+                                                    self.levels, max_load=cfg.grid.max_load,
+                                                    valid=jnp.asarray(rows_p >= 0))      # [M, L*8]
+            voxel_corner_rows = _set_rows(voxel_corner_rows, jnp.asarray(rows_p), crows)
         self.state = s.replace(corners=corners, voxel_coord=voxel_coord, voxel_corner_rows=voxel_corner_rows)
         self._ensure_feature_rows(int(corners.count))
         s = self.state

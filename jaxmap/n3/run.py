@@ -114,6 +114,13 @@ def finish_run(mapper, cfg: MapConfig, out_dir: str, seq, evaluate: bool = True)
     return summary
 
 
+def city_config_path() -> str | None:
+    """configs/city.yaml of the source checkout (what `make demo` and `jaxmap bench` use), wherever the
+    command runs from; None for an installed package without it (the dataclass defaults then)."""
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "city.yaml")
+    return os.path.normpath(path) if os.path.isfile(path) else None
+
+
 def _frame_selection(cfg: MapConfig) -> dict:
     """The frames and range a run mapped, so that GT culling uses exactly what the mapper saw."""
     return {"begin_frame": cfg.data.begin_frame, "end_frame": cfg.data.end_frame,
@@ -171,9 +178,7 @@ def cli_demo(args) -> int:
     if not os.path.isfile(os.path.join(args.data, "poses.txt")):
         log.info("synthesizing the demo city into %s", args.data)
         generate_city(args.data, seed=0)
-    cfg_path = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "..", "configs", "city.yaml")
-    cfg = load_config(cfg_path if os.path.isfile(cfg_path) else None,
-                      [f"data.path={args.data}", f"output={args.out}"])
+    cfg = load_config(city_config_path(), [f"data.path={args.data}", f"output={args.out}"])
     summary = map_sequence(cfg, args.out)
     m = summary.get("metrics", {})
     print(f"\nmesh:    {summary['mesh']}")
