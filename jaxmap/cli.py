@@ -67,10 +67,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("action", choices=["train", "eval"])
     _add_config_args(p, default_config="configs/prior.yaml")
 
+    p = sub.add_parser("imt", help="transformable latent map of a sequence: encode, fuse, mesh, metrics")
+    _add_config_args(p, default_config="configs/room_imt.yaml")
+    p.add_argument("--no-progress", action="store_true")
+
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
-    p.add_argument("suite", choices=["n3"])
-    p.add_argument("--data", default="data/city_bench", help="where the benchmark scene is (made if missing)")
-    p.add_argument("--out", default="runs/bench_n3")
+    p.add_argument("suite", choices=["n3", "imt"])
+    p.add_argument("--data", default=None,
+                   help="where the benchmark scene is, made if missing (n3: data/city_bench, imt: data/room_bench)")
+    p.add_argument("--out", default=None, help="output directory (default runs/bench_SUITE)")
     p.add_argument("--frames", type=int, default=None)
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
@@ -146,9 +151,20 @@ def _dispatch(args) -> int:
         from jaxmap.imt import prior
 
         return prior.cli_train(args) if args.action == "train" else prior.cli_eval(args)
+    if args.command == "imt":
+        from jaxmap.imt import run as imt_run
+
+        return imt_run.cli_imt(args)
     if args.command == "bench":
+        args.out = args.out or f"runs/bench_{args.suite}"
+        if args.suite == "imt":
+            from jaxmap.bench import imt as bench_imt
+
+            args.data = args.data or "data/room_bench"
+            return bench_imt.main(args)
         from jaxmap.bench import n3 as bench_n3
 
+        args.data = args.data or "data/city_bench"
         return bench_n3.main(args)
     raise AssertionError(args.command)
 

@@ -134,6 +134,55 @@ class MapConfig:
 
 
 # ---------------------------------------------------------------------------------------------
+# The transformable latent map config (jaxmap imt, jaxmap slam). DESIGN.md section 8, indoor column.
+# ---------------------------------------------------------------------------------------------
+
+
+def _room_data() -> DataConfig:
+    return DataConfig(path="data/room", every_frame=2)
+
+
+def _room_preprocess() -> PreprocessConfig:
+    return PreprocessConfig(min_range_m=0.1, max_range_m=8.0, vox_down_m=0.025)
+
+
+@dataclass(frozen=True)
+class LatentMapConfig:
+    voxel_size_m: float = 0.1         # PLIVox side (IMT paper: 0.1 m indoors)
+    min_points: int = 10              # voxels fed by fewer points of a frame are dropped
+    interpolation: str = "trilinear"  # "trilinear" (splat, weight-conserving) or "softmax" (paper eq. 9)
+    jacobian_sign: float = -1.0       # first-order term F - J t (-1); +1 = the paper's eq. 5; 0 = none
+    softmax_temperature: float = 1.0  # softmax only: weights exp(-|t|^2 / T), t in voxel units
+    k_neighbours: int = 8             # softmax only: local voxels gathered per global voxel
+    remap_min_rotation_deg: float = 0.05  # remap a keyframe whose pose moved more than this ...
+    remap_min_translation_m: float = 0.002  # ... or this
+    initial_capacity: int = 16384     # hash-table slots of the global map at start (grows, logged)
+    prior: str = ""                   # prior weights (.npz); "" = the weights shipped in the package
+
+
+@dataclass(frozen=True)
+class LatentMeshConfig:
+    resolution: int = 4               # marching-cubes lattice points per voxel side (even)
+    sigma_threshold_m: float = 0.15   # drop triangles where the decoded SDF std exceeds this (<= 0: keep all)
+    min_weight: float = 10.0          # voxels with less observation weight are not meshed
+    min_component_faces: int = 0      # drop connected components smaller than this
+
+
+@dataclass(frozen=True)
+class ImtConfig:
+    """Root config of `jaxmap imt` (transformable neural implicit map)."""
+
+    data: DataConfig = field(default_factory=_room_data)
+    preprocess: PreprocessConfig = field(default_factory=_room_preprocess)
+    map: LatentMapConfig = field(default_factory=LatentMapConfig)
+    mesh: LatentMeshConfig = field(default_factory=LatentMeshConfig)
+    eval: EvalConfig = field(default_factory=lambda: EvalConfig(threshold_m=0.05, cull_distance_m=0.1,
+                                                                n_samples=1_000_000))
+    output: str = "runs/imt"
+    progress: bool = True             # tqdm progress bar
+
+
+# ---------------------------------------------------------------------------------------------
 # Generic loading, validation and overrides.
 # ---------------------------------------------------------------------------------------------
 
@@ -178,8 +227,12 @@ def _coerce(value: Any, typ: Any, where: str) -> Any:
     return value
 
 
-def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix: str = "") -> Any:
-    """Build dataclass `schema` from a nested dict, rejecting unknown keys with a suggestion."""
+def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix: str = "", base: Any = None) -> Any:
+    """Build dataclass `schema` from a nested dict, rejecting unknown keys with a suggestion.
+
+    Missing keys keep the defaults of `base` (an instance of `schema`; default: `schema()`), so a
+    section whose default differs from its class defaults (e.g. `ImtConfig.data`) keeps them.
+    """
     data = {} if data is None else data
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: section '{prefix or '<root>'}' must be a mapping, got {data!r}")
@@ -196,10 +249,19 @@ def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix:
             )
         typ = hints[key]
         if dataclasses.is_dataclass(typ):
-            kwargs[key] = from_dict(typ, value, source, prefix=f"{full}.")
+            sub = getattr(base, key) if base is not None else _field_default(fields[key])
+            kwargs[key] = from_dict(typ, value, source, prefix=f"{full}.", base=sub)
         else:
             kwargs[key] = _coerce(value, typ, f"{source}: {full}")
+    if base is not None:
+        return dataclasses.replace(base, **kwargs)
     return schema(**kwargs)
+
+
+def _field_default(f: dataclasses.Field) -> Any:
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None if f.default is dataclasses.MISSING else f.default
 
 
 def to_dict(cfg: Any) -> dict:

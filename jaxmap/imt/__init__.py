@@ -1,13 +1,22 @@
-"""Transformable neural implicit maps (IMT): the SO(3)-equivariant prior and, later, the latent map.
+"""Transformable neural implicit maps (IMT): the SO(3)-equivariant prior and the latent map.
 
 The prior (`load_prior()`) turns the points and normals around a voxel into a latent `[18, 3]` of
 3-vectors that rotates exactly with the input, and decodes a latent and a query position into an
 SDF mean and standard deviation (voxel units) that are exactly invariant to a common rotation.
 `rotate(tree, R)` rotates every `Vec`/`Jac`-marked leaf of a pytree (see `jaxmap.imt.vn`).
+
+The latent map (DESIGN.md section 5): `encode_frame` (a frame's local map on the world grid),
+`fuse` / `remove` (eq. 11), `transform` (eqs. 3-10, onto the global grid), `remap` (move the
+keyframes whose pose changed), `mesh` / `query` (decoded SDF, marching cubes); `ImtMapper` runs them
+over a sequence (`jaxmap imt`).
 """
 from jaxmap.imt.decoder import Decoder, DecoderConfig
 from jaxmap.imt.encoder import Encoder, EncoderConfig, encode, encode_with_jacobian
 from jaxmap.imt.prior import Prior, PriorConfig, init_prior, load_prior, save_prior
+from jaxmap.imt.latent_map import LatentMap, VoxelBatch, encode_frame, encode_world, fuse, remove
+from jaxmap.imt.meshing import mesh, query
+from jaxmap.imt.remap import KeyframeStore, RemapOptions, remap
+from jaxmap.imt.transform import transform, transform_batch
 from jaxmap.imt.vn import (
     Jac,
     Vec,
@@ -23,6 +32,8 @@ from jaxmap.imt.vn import (
 )
 
 __all__ = [
+    "KeyframeStore", "LatentMap", "RemapOptions", "VoxelBatch", "encode_frame", "encode_world", "fuse", "mesh",
+    "query", "remap", "remove", "transform", "transform_batch",
     "Decoder", "DecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",
     "VNLinear", "Vec", "encode", "encode_with_jacobian", "gram_upper", "init_prior", "invariant_features",
     "load_prior", "rotate", "rotate_jacobians", "rotate_vectors", "save_prior", "vn_inner", "vn_mean_pool",

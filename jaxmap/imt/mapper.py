@@ -1,0 +1,152 @@
+"""`ImtMapper`: the transformable latent map of a sequence, frame by frame, with remapping.
+
+    mapper = ImtMapper(cfg)                   # cfg: jaxmap.config.ImtConfig
+    mapper.add_frame(points_s, pose)          # [N,3] sensor frame, [4,4] T_world_sensor
+    mapper.remap(new_keyframe_poses)          # [K,4,4] after a pose-graph update
+    mapper.mesh(); mapper.sdf(points_w); mapper.save(dir); ImtMapper.load(dir)
+
+Every added frame is preprocessed (crop, downsample to about voxel/4, PCA normals towards the
+sensor), encoded on the world grid with its pose (`encode_frame`), fused into the global map and
+kept as a keyframe (`KeyframeStore`) so that a later pose change can move it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import time
+
+import jax
+import numpy as np
+
+from jaxmap.config import ImtConfig, from_dict, to_dict
+from jaxmap.errors import DataError
+from jaxmap.geometry import validate_pose
+from jaxmap.imt import latent_map as lm
+from jaxmap.imt.meshing import mesh as mesh_map
+from jaxmap.imt.meshing import query
+from jaxmap.imt.remap import KeyframeStore, RemapOptions, remap
+
+
+def remap_options(cfg: ImtConfig) -> RemapOptions:
+    c = cfg.map
+    return RemapOptions(min_rotation_deg=c.remap_min_rotation_deg, min_translation_m=c.remap_min_translation_m,
+                        method=c.interpolation, jacobian_sign=c.jacobian_sign,
+                        temperature=c.softmax_temperature, k=c.k_neighbours)
+
+
+class ImtMapper:
+    """Global latent map + keyframe store of one run (see the module docstring)."""
+
+    def __init__(self, cfg: ImtConfig = ImtConfig(), prior=None):
+        from jaxmap.imt.prior import load_prior
+
+        if cfg.map.interpolation not in ("trilinear", "softmax"):
+            raise ValueError(f"map.interpolation must be 'trilinear' or 'softmax', got {cfg.map.interpolation!r}")
+        self.cfg = cfg
+        self.prior = prior if prior is not None else load_prior(cfg.map.prior or None)
+        cap = 1 << max(10, int(np.ceil(np.log2(max(cfg.map.initial_capacity, 2)))))
+        self.map = lm.empty(cfg.map.voxel_size_m, cap, self.prior.latent_channels)
+        self.store = KeyframeStore()
+        self.timings: list[dict] = []
+        self.remaps: list[dict] = []
+
+    # -- mapping --
+    def preprocess(self, points_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Crop, downsample and normals: [N,3] sensor frame -> (points [M,3], normals [M,3]) sensor frame."""
+        from jaxmap.preprocess import preprocess_scan
+
+        return preprocess_scan(np.asarray(points_s, np.float32), self.cfg.preprocess)
+
+    def encode(self, points_s, normals_s, pose) -> lm.LatentMap:
+        """Local map of preprocessed points at `pose` (world grid)."""
+        c = self.cfg.map
+        return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points)
+
+    def add_frame(self, points_s, pose, frame: int | None = None) -> dict:
+        """Encode, fuse and keep a frame. Returns its timings (s) and sizes."""
+        pose = np.asarray(pose, np.float64)
+        validate_pose(pose, f"pose of frame {frame if frame is not None else len(self.store)}")
+        t0 = time.perf_counter()
+        pts, nrm = self.preprocess(points_s)
+        t1 = time.perf_counter()
+        local = self.encode(pts, nrm, pose)
+        jax.block_until_ready(local.latent)
+        t2 = time.perf_counter()
+        self.map = lm.fuse(self.map, local)
+        jax.block_until_ready(self.map.latent)
+        t3 = time.perf_counter()
+        self.store.add(len(self.store) if frame is None else frame, local, pose)
+        info = {"frame": int(self.store.frames[-1]), "points": int(len(pts)), "preprocess_s": t1 - t0,
+                "encode_s": t2 - t1, "fuse_s": t3 - t2, "local_voxels": local.num_active(),
+                "map_voxels": self.map.num_active()}
+        self.timings.append(info)
+        return info
+
+    def remap(self, new_poses) -> list[int]:
+        """Move the keyframes whose pose changed ([K,4,4] new poses). Returns the ids that moved."""
+        t0 = time.perf_counter()
+        self.map, changed = remap(self.map, self.store, new_poses, remap_options(self.cfg))
+        jax.block_until_ready(self.map.latent)
+        self.remaps.append({"keyframes": len(changed), "time_s": time.perf_counter() - t0})
+        return changed
+
+    # -- outputs --
+    def mesh(self, resolution: int | None = None):
+        c = self.cfg.mesh
+        return mesh_map(self.prior, self.map, resolution or c.resolution, c.sigma_threshold_m, c.min_weight,
+                        c.min_component_faces)
+
+    def sdf(self, points_w):
+        """(sdf [P] m, std [P] m, valid [P]) at world points [P,3]."""
+        return query(self.prior, self.map, points_w)
+
+    def keyframe_poses(self) -> np.ndarray:
+        return self.store.poses()
+
+    def sizes(self) -> dict:
+        return {"map_bytes": self.map.nbytes(), "map_voxels": self.map.num_active(),
+                "store_bytes": self.store.nbytes(), "store_voxels": self.store.voxel_count(),
+                "keyframes": len(self.store)}
+
+    # -- checkpoints (orbax) --
+    def save(self, path: str) -> None:
+        """Write the map, the keyframe store and the config to directory `path` (atomically)."""
+        from jaxmap.checkpoint import _checkpointer
+
+        path = os.path.abspath(path)
+        tmp = path + ".tmp"
+        if os.path.exists(tmp):
+            shutil.rmtree(tmp)
+        os.makedirs(tmp)
+        tree = {"map": jax.device_get(self.map), "store": self.store.to_arrays()}
+        _checkpointer().save(os.path.join(tmp, "state"), tree)
+        meta = {"config": to_dict(self.cfg), "table_capacity": int(self.map.table.capacity),
+                "keyframes": len(self.store), "timings": self.timings, "remaps": self.remaps}
+        with open(os.path.join(tmp, "meta.json"), "w") as f:
+            json.dump(meta, f)
+        if os.path.exists(path):
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str, prior=None) -> "ImtMapper":
+        from jaxmap.checkpoint import _checkpointer
+        from jaxmap.grid.hashing import HashTable
+
+        path = os.path.abspath(path)
+        meta_path = os.path.join(path, "meta.json")
+        if not os.path.isfile(meta_path):
+            raise DataError(f"{path}: not a jaxmap imt checkpoint (no meta.json); pass RUN_DIR/checkpoint")
+        with open(meta_path) as f:
+            meta = json.load(f)
+        cfg = from_dict(ImtConfig, meta["config"], source=meta_path)
+        m = cls(cfg, prior)
+        tree = _checkpointer().restore(os.path.join(path, "state"))
+        mp, t = tree["map"], tree["map"]["table"]
+        m.map = lm.LatentMap(HashTable(np.asarray(t["keys"]), np.asarray(t["rows"]), np.asarray(t["count"])),
+                             np.asarray(mp["coords"]), np.asarray(mp["latent"]), np.asarray(mp["jac"]),
+                             np.asarray(mp["weight"]), cfg.map.voxel_size_m)
+        m.store = KeyframeStore.from_arrays({k: np.asarray(v) for k, v in tree["store"].items()})
+        m.timings, m.remaps = meta.get("timings", []), meta.get("remaps", [])
+        return m
