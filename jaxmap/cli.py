@@ -71,10 +71,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p, default_config="configs/room_imt.yaml")
     p.add_argument("--no-progress", action="store_true")
 
+    p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
+    _add_config_args(p, default_config="configs/room_slam.yaml")
+    p.add_argument("--no-progress", action="store_true")
+
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
-    p.add_argument("suite", choices=["n3", "imt"])
+    p.add_argument("suite", choices=["n3", "imt", "slam"])
     p.add_argument("--data", default=None,
-                   help="where the benchmark scene is, made if missing (n3: data/city_bench, imt: data/room_bench)")
+                   help="where the benchmark scene is, made if missing "
+                        "(n3: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
     p.add_argument("--out", default=None, help="output directory (default runs/bench_SUITE)")
     p.add_argument("--frames", type=int, default=None)
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
@@ -151,12 +156,21 @@ def _dispatch(args) -> int:
         from jaxmap.imt import prior
 
         return prior.cli_train(args) if args.action == "train" else prior.cli_eval(args)
+    if args.command == "slam":
+        from jaxmap.slam import run as slam_run
+
+        return slam_run.cli_slam(args)
     if args.command == "imt":
         from jaxmap.imt import run as imt_run
 
         return imt_run.cli_imt(args)
     if args.command == "bench":
         args.out = args.out or f"runs/bench_{args.suite}"
+        if args.suite == "slam":
+            from jaxmap.bench import slam as bench_slam
+
+            args.data = args.data or "data/room_noisy"
+            return bench_slam.main(args)
         if args.suite == "imt":
             from jaxmap.bench import imt as bench_imt
 

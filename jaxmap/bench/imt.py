@@ -44,13 +44,17 @@ def drift_poses(poses: np.ndarray, rot_deg: float = 2.0, trans_m: float = 0.10) 
     return np.asarray(out)
 
 
-def _mesh_pair_error(prior, ma, mb, cfg, n: int = 100_000) -> tuple[float, float]:
+def _mesh_of(prior, m, cfg):
     from jaxmap.imt.meshing import mesh
-    from jaxmap.metrics import mesh_distance, sample_mesh
 
     c = cfg.mesh
-    A = mesh(prior, ma, c.resolution, c.sigma_threshold_m, c.min_weight)
-    B = mesh(prior, mb, c.resolution, c.sigma_threshold_m, c.min_weight)
+    return mesh(prior, m, c.resolution, c.sigma_threshold_m, c.min_weight)
+
+
+def _mesh_pair_error(A, B, n: int = 100_000) -> tuple[float, float]:
+    """(accuracy, completeness) in cm between meshes A and B: A's samples to B, B's samples to A."""
+    from jaxmap.metrics import mesh_distance, sample_mesh
+
     if len(A.faces) == 0 or len(B.faces) == 0:
         return float("nan"), float("nan")
     pa, pb = sample_mesh(A, n), sample_mesh(B, n)
@@ -77,8 +81,9 @@ def two_branch(mapper, seq, ids, cfg) -> dict:
         b = mapper.encode(pts, nrm, fr.pose)
         a0 = mapper.encode(pts, nrm, T0)
         D = fr.pose @ se3_inverse(T0)
+        mesh_b = _mesh_of(mapper.prior, b, cfg)
         for name, kw in variants.items():
-            errs[name].append(_mesh_pair_error(mapper.prior, transform(a0, D, **kw), b, cfg))
+            errs[name].append(_mesh_pair_error(_mesh_of(mapper.prior, transform(a0, D, **kw), cfg), mesh_b))
         print(f"[bench] two-branch frame {fr.index}: " + ", ".join(f"{e[-1][0]:.2f}/{e[-1][1]:.2f}"
                                                                    for e in errs.values()), flush=True)
     out = {}

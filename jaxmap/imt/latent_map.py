@@ -83,7 +83,7 @@ class LatentMap:
 
     def num_active(self) -> int:
         """Number of voxels with non-zero weight (host int)."""
-        return int(jnp.sum(self.active()))
+        return int(np.count_nonzero(np.asarray(self.weight) > 0))
 
     def nbytes(self) -> int:
         """Bytes of every array of the map (table included)."""
@@ -126,13 +126,19 @@ class VoxelBatch(NamedTuple):
 
 
 def concat_batches(batches) -> VoxelBatch:
-    """Concatenate `VoxelBatch`es (host or device arrays) along the entry axis."""
-    return VoxelBatch(*[jnp.concatenate([jnp.asarray(b[i]) for b in batches]) for i in range(5)])
+    """Concatenate `VoxelBatch`es (host or device arrays) along the entry axis (on the host: eager
+    device concatenations would compile once per shape)."""
+    return VoxelBatch(*[np.concatenate([np.asarray(b[i]) for b in batches]) for i in range(5)])
 
 
-def _keys4(coords: jax.Array) -> jax.Array:
-    """[P, 3] voxel coords -> [P, 4] hash keys (level column 0)."""
-    return jnp.concatenate([coords, jnp.zeros_like(coords[:, :1])], axis=1)
+def _keys4(coords):
+    """[P, 3] voxel coords -> [P, 4] hash keys (level column 0); numpy in, numpy out."""
+    xnp = np if isinstance(coords, np.ndarray) else jnp
+    return xnp.concatenate([coords, xnp.zeros_like(coords[:, :1])], axis=1)
+
+
+def _host_valid(b: VoxelBatch) -> np.ndarray:
+    return np.asarray(b.valid) & (np.asarray(b.weight) > 0)
 
 
 def empty(voxel_size: float, capacity: int = 1024, channels: int = 18) -> LatentMap:
@@ -161,7 +167,8 @@ def _pad_rows(m: LatentMap, table: hashing.HashTable) -> LatentMap:
     def pad(x, fill):
         if extra == 0:
             return x
-        return jnp.concatenate([x, jnp.full((extra,) + x.shape[1:], fill, x.dtype)])
+        x = np.asarray(x)
+        return np.concatenate([x, np.full((extra,) + x.shape[1:], fill, x.dtype)])
 
     return LatentMap(table, pad(m.coords, hashing.EMPTY), pad(m.latent, 0), pad(m.jac, 0), pad(m.weight, 0),
                      m.voxel_size)
@@ -183,16 +190,17 @@ def _scatter(m: LatentMap, rows: jax.Array, b: VoxelBatch, sign: float) -> Laten
                      jnp.where(live, w_new, 0.0), m.voxel_size)
 
 
-def fuse(m: LatentMap, b: LatentMap | VoxelBatch) -> LatentMap:
-    """Fuse a local map (or a voxel batch) into `m` (eq. 11, `+`). Grows `m` when needed (host-side).
+def fuse(m: LatentMap, b: LatentMap | VoxelBatch, log: bool = True) -> LatentMap:
+    """Fuse a local map (or a voxel batch) into `m` (eq. 11, `+`). Grows `m` when needed (host-side,
+    logged on the "jaxmap" logger unless `log` is False).
 
     Both must use the same voxel size (checked for maps) and the same frame.
     """
     if isinstance(b, LatentMap):
         _check_same_grid(m, b)
         b = b.as_batch()
-    valid = jnp.asarray(b.valid) & (jnp.asarray(b.weight) > 0)
-    table, rows = hashing.insert_grow(m.table, _keys4(jnp.asarray(b.coords)), valid, max_load=MAX_LOAD)
+    table, rows = hashing.insert_grow(m.table, _keys4(np.asarray(b.coords)), _host_valid(b), max_load=MAX_LOAD,
+                                      log=log)
     return _scatter(_pad_rows(m, table), rows, b, 1.0)
 
 
@@ -204,13 +212,16 @@ def remove(m: LatentMap, b: LatentMap | VoxelBatch) -> LatentMap:
     if isinstance(b, LatentMap):
         _check_same_grid(m, b)
         b = b.as_batch()
-    valid = jnp.asarray(b.valid) & (jnp.asarray(b.weight) > 0)
-    rows = hashing.lookup(m.table, _keys4(jnp.asarray(b.coords)))
-    missing = int(jnp.sum(valid & (rows < 0)))
+    valid = _host_valid(b)
+    rows = _lookup(m.table, _keys4(np.asarray(b.coords)))
+    missing = int(np.count_nonzero(valid & (np.asarray(rows) < 0)))
     if missing:
         raise ValueError(f"remove: {missing} voxels of the local map are not in the global map "
                          "(was it fused into this map?)")
     return _scatter(m, rows, b, -1.0)
+
+
+_lookup = jax.jit(hashing.lookup)
 
 
 def _check_same_grid(a: LatentMap, b: LatentMap) -> None:

@@ -128,7 +128,7 @@ def contributions(store: KeyframeStore, ids, poses, voxel_size: float, opts: Rem
         parts.append(splat_trilinear(b, T, voxel_size, float(opts.jacobian_sign)))
     elif moved:  # softmax gathers per keyframe (it needs each local map's own lattice)
         for kf, d in zip(moved, deltas):
-            m = fuse(_empty_like(voxel_size, store.locals_[kf]), store.locals_[kf])
+            m = fuse(_empty_like(voxel_size, store.locals_[kf]), store.locals_[kf], log=False)
             parts.append(transform_batch(m, d, method=opts.method, jacobian_sign=opts.jacobian_sign,
                                          temperature=opts.temperature, k=opts.k))
     return concat_batches(parts) if parts else None
@@ -137,7 +137,8 @@ def contributions(store: KeyframeStore, ids, poses, voxel_size: float, opts: Rem
 def _empty_like(voxel_size, b):
     from jaxmap.imt.latent_map import empty
 
-    return empty(voxel_size, channels=np.shape(b.latent)[1])
+    cap = 1 << max(10, int(np.ceil(np.log2(2 * max(int(np.sum(b.valid)), 1)))))
+    return empty(voxel_size, capacity=cap, channels=np.shape(b.latent)[1])
 
 
 def remap(global_map: LatentMap, store: KeyframeStore, new_poses, opts: RemapOptions = RemapOptions()):

@@ -128,8 +128,10 @@ def transform(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: floa
     temperature: softmax temperature in voxel units^2 (paper: 1 / voxel_size^2).
     Returns a new `LatentMap` on the global grid (same voxel size).
     """
-    return fuse(empty(m.voxel_size, channels=m.channels),
-                transform_batch(m, T, method=method, jacobian_sign=jacobian_sign, temperature=temperature, k=k))
+    b = transform_batch(m, T, method=method, jacobian_sign=jacobian_sign, temperature=temperature, k=k)
+    # Splats reach ~2x as many voxels as the map has; start there so the table grows at most once.
+    cap = 1 << max(10, int(np.ceil(np.log2(4 * max(m.num_active(), 1)))))
+    return fuse(empty(m.voxel_size, capacity=cap, channels=m.channels), b, log=False)
 
 
 def transform_batch(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: float = -1.0,

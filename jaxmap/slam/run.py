@@ -1,0 +1,248 @@
+"""`jaxmap slam CONFIG [--data DIR] [--out RUN]`: odometry, loop closure, pose graph and a neural map
+that is remapped on the fly.
+
+Per frame of the sequence (its poses.txt is only used for the first pose and for evaluation):
+  1. the front end (`FrontEnd`: ICP odometry, keyframes, loop verification, open3d pose graph) gives
+     the pose estimate;
+  2. a keyframe is encoded and fused into the transformable latent map (`ImtMapper`) at that pose;
+  3. when a loop is accepted and the graph optimised, the latent map is remapped to the optimised
+     keyframe poses (`jaxmap.imt.remap`: only the keyframes whose pose moved are touched), with a
+     mesh written before and after (`loop_<n>_before.ply`, `loop_<n>_after.ply`).
+With `external_poses: DIR` the front end is replaced by pose-graph snapshots of another SLAM system
+(one TUM or KITTI file per keyframe update, in natural order, as ORB-SLAM2 writes them; snapshot i
+holds the poses of the first n_i frames of the selection): new frames are fused with their snapshot
+pose, and earlier keyframes are remapped as each snapshot arrives.
+
+A run directory holds config.yaml, checkpoint/ (latent map + keyframe store), mesh.ply,
+trajectory_kitti.txt and trajectory_tum.txt (every frame, and odometry_kitti.txt: odometry alone),
+the loop meshes, metrics.json (ATE of odometry and of the optimised trajectory against the
+sequence's poses, reconstruction metrics when the sequence has ground truth, per-loop timings) and,
+with `n3_config`, an N3 map built from the optimised poses in n3/.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import sys
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig,
+                           PreprocessConfig, load_config, save_config)
+from jaxmap.errors import DataError
+from jaxmap.slam.frontend import FrontEndConfig
+
+log = logging.getLogger("jaxmap")
+
+
+@dataclass(frozen=True)
+class SlamConfig:
+    """Root config of `jaxmap slam` (front end + transformable latent map)."""
+
+    data: DataConfig = field(default_factory=lambda: ImtConfig().data)
+    preprocess: PreprocessConfig = field(default_factory=lambda: ImtConfig().preprocess)
+    map: LatentMapConfig = field(default_factory=LatentMapConfig)
+    mesh: LatentMeshConfig = field(default_factory=LatentMeshConfig)
+    eval: EvalConfig = field(default_factory=lambda: ImtConfig().eval)
+    frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
+    external_poses: str = ""          # directory of pose snapshots replacing the front end ("" = our own)
+    mesh_at_loops: bool = True        # write meshes before and after each loop closure
+    n3_config: str = ""               # also build an N3 map from the optimised poses with this config
+    output: str = "runs/slam"
+    progress: bool = True             # tqdm progress bar
+
+    def imt(self) -> ImtConfig:
+        return ImtConfig(data=self.data, preprocess=self.preprocess, map=self.map, mesh=self.mesh, eval=self.eval,
+                         output=self.output, progress=self.progress)
+
+
+def _bar(total, desc, enabled):
+    if not enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="frame", desc=desc, file=sys.stderr)
+
+
+def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True) -> dict:
+    """Our own front end drives the map. Returns trajectories and per-loop records."""
+    from jaxmap.slam.frontend import FrontEnd
+
+    fe = FrontEnd(cfg.frontend, initial_pose=seq.frame(0).pose)
+    loops, odo = [], []
+    bar = _bar(len(seq), "slam", progress)
+    for i in range(len(seq)):
+        fr = seq.frame(i)
+        r = fe.add_frame(fr.points)
+        # odometry alone: the chain of frame-to-frame motions (the velocity of the step just made),
+        # which loop corrections do not touch
+        odo.append(fr.pose.copy() if i == 0 else odo[-1] @ fe.odometry.velocity)
+        if r.is_keyframe:
+            mapper.add_frame(fr.points, r.pose, frame=fr.index)
+            if r.optimized:
+                loops.append(_close_loop(cfg, mapper, r.keyframe_poses, out_dir, len(loops),
+                                         {"frame": int(fr.index), "keyframe": int(r.keyframe_id),
+                                          "optimize_s": r.timings["optimize_s"],
+                                          "fitness": float(r.loop.fitness), "rmse_m": float(r.loop.rmse)}))
+        if bar is not None:
+            bar.set_postfix(kf=len(mapper.store), loops=len(loops), ok=r.odometry_ok)
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return {"trajectory": fe.trajectory(), "odometry": np.asarray(odo), "loops": loops,
+            "keyframe_frames": list(mapper.store.frames)}
+
+
+def _close_loop(cfg, mapper, poses, out_dir, n, record):
+    if cfg.mesh_at_loops:
+        mapper.mesh().export(os.path.join(out_dir, f"loop_{n}_before.ply"))
+    t0 = time.perf_counter()
+    changed = mapper.remap(poses)
+    record.update({"remap_s": time.perf_counter() - t0, "keyframes_moved": len(changed),
+                   "keyframes": len(mapper.store)})
+    if cfg.mesh_at_loops:
+        mapper.mesh().export(os.path.join(out_dir, f"loop_{n}_after.ply"))
+    log.info("loop %d at frame %d: optimised in %.2f s, %d of %d keyframes remapped in %.2f s", n, record["frame"],
+             record.get("optimize_s", 0.0), len(changed), len(mapper.store), record["remap_s"])
+    return record
+
+
+def snapshot_files(directory: str) -> list[str]:
+    """Pose snapshot files of `directory` in natural order (`kf_2.txt` before `kf_10.txt`)."""
+    if not os.path.isdir(directory):
+        raise DataError(f"external_poses: {directory} is not a directory of pose snapshots")
+    names = [n for n in os.listdir(directory) if n.endswith(".txt")]
+    if not names:
+        raise DataError(f"external_poses: {directory} has no .txt pose snapshots (TUM or KITTI, one per update)")
+    key = lambda s: [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", s)]  # noqa: E731
+    return [os.path.join(directory, n) for n in sorted(names, key=key)]
+
+
+def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True) -> dict:
+    """Pose snapshots of another SLAM system drive the map (see the module docstring)."""
+    from jaxmap.slam.trajectory import read_pose_snapshot
+
+    files = snapshot_files(cfg.external_poses)
+    updates, poses = [], np.zeros((0, 4, 4))
+    bar = _bar(len(seq), "slam (external poses)", progress)
+    for n, path in enumerate(files):
+        poses = read_pose_snapshot(path)
+        if len(poses) > len(seq):
+            raise DataError(f"{path}: {len(poses)} poses but the sequence selection has {len(seq)} frames")
+        if len(poses) < len(mapper.store):
+            raise DataError(f"{path}: {len(poses)} poses, fewer than the {len(mapper.store)} frames of the "
+                            "previous snapshots; each snapshot must cover every frame fused so far")
+        t0 = time.perf_counter()
+        changed = mapper.remap(poses[:len(mapper.store)]) if len(mapper.store) else []
+        remap_s = time.perf_counter() - t0
+        new = range(len(mapper.store), len(poses))
+        for k in new:
+            mapper.add_frame(seq.frame(k).points, poses[k], frame=seq.frame(k).index)
+            if bar is not None:
+                bar.update(1)
+        updates.append({"snapshot": os.path.basename(path), "poses": len(poses), "remapped": changed,
+                        "added": len(new), "remap_s": remap_s})
+    if bar is not None:
+        bar.close()
+    return {"trajectory": poses, "odometry": None, "loops": updates, "keyframe_frames": list(mapper.store.frames)}
+
+
+def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True) -> dict:
+    from jaxmap.imt.mapper import ImtMapper
+    from jaxmap.imt.run import mesh_and_evaluate, open_run_sequence, summarize
+    from jaxmap.slam.trajectory import ate, write_kitti, write_tum
+
+    os.makedirs(out_dir, exist_ok=True)
+    save_config(cfg, os.path.join(out_dir, "config.yaml"))
+    icfg = cfg.imt()
+    seq = open_run_sequence(icfg)
+    mapper = ImtMapper(icfg)
+    run = run_external if cfg.external_poses else run_frontend
+    res = run(cfg, seq, out_dir, mapper, progress)
+    mapper.save(os.path.join(out_dir, "checkpoint"))
+    traj = np.asarray(res["trajectory"])
+    write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
+    stamps = np.asarray([seq.frame(i).index for i in range(len(traj))], np.float64)
+    write_tum(os.path.join(out_dir, "trajectory_tum.txt"), stamps, traj)
+    out = {"run": out_dir, "frames": len(seq), "keyframes": len(mapper.store), "loops": res["loops"],
+           **summarize(mapper.timings), **mapper.sizes()}
+    gt = np.asarray([seq.frame(i).pose for i in range(len(traj))])
+    if evaluate:
+        out["ate_slam"] = ate(traj, gt)
+        if res["odometry"] is not None:
+            write_kitti(os.path.join(out_dir, "odometry_kitti.txt"), res["odometry"])
+            out["ate_odometry"] = ate(res["odometry"], gt)
+    rec = mesh_and_evaluate(mapper, icfg, out_dir, evaluate=evaluate)
+    out.update({"mesh": rec["mesh"], "faces": rec["faces"]})
+    if "metrics" in rec:
+        out["metrics"] = rec["metrics"]
+    if cfg.n3_config:
+        out["n3"] = _n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
+    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
+        json.dump(out, f, default=_jsonable)
+    return out
+
+
+def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) -> dict:
+    """The N3 map of the same frames with the optimised poses (written as a KITTI pose file beside a
+    symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
+    from jaxmap.config import MapConfig
+    from jaxmap.n3.mapper import N3Mapper
+    from jaxmap.n3.run import finish_run
+
+    d = cfg.data
+    ncfg = load_config(cfg.n3_config, [f"data.path={d.path}", f"data.begin_frame={d.begin_frame}",
+                                       f"data.end_frame={d.end_frame}", f"data.every_frame={d.every_frame}",
+                                       f"output={out_dir}"], schema=MapConfig)
+    os.makedirs(out_dir, exist_ok=True)
+    save_config(ncfg, os.path.join(out_dir, "config.yaml"))
+    mapper = N3Mapper(ncfg)
+    bar = _bar(len(seq), "n3 (optimised poses)", progress)
+    for i in range(len(seq)):
+        mapper.add_frame(seq.frame(i).points, poses[i])
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return finish_run(mapper, ncfg, out_dir, seq)
+
+
+def _jsonable(x):
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    raise TypeError(type(x))
+
+
+def room_slam_config_path() -> str | None:
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "room_slam.yaml")
+    return os.path.normpath(path) if os.path.isfile(path) else None
+
+
+def config_from_args(args) -> SlamConfig:
+    overrides = list(args.overrides)
+    if getattr(args, "data", None):
+        overrides.append(f"data.path={args.data}")
+    if getattr(args, "out", None):
+        overrides.append(f"output={args.out}")
+    return load_config(args.config, overrides, schema=SlamConfig)
+
+
+def cli_slam(args) -> int:
+    cfg = config_from_args(args)
+    out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress)
+    brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
+    brief["loops"] = len(out["loops"])
+    for k in ("ate_odometry", "ate_slam"):
+        if k in out:
+            brief[k + "_rmse_m"] = out[k]["rmse_m"]
+    if "metrics" in out:
+        brief["chamfer_l1_cm"] = out["metrics"]["chamfer_l1_cm"]
+        brief["f_score"] = out["metrics"]["f_score"]
+    print(json.dumps(brief))
+    return 0

@@ -1,0 +1,158 @@
+"""Trajectory files (KITTI, TUM) and the absolute trajectory error (ATE).
+
+Poses are [N,4,4] float64 T_world_sensor. KITTI: one line of 12 numbers (row-major 3x4 [R|t]) per pose.
+TUM: one line `t tx ty tz qx qy qz qw` per pose (timestamp in seconds, Hamilton quaternion, w last);
+lines starting with '#' are comments.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from jaxmap.errors import DataError
+from jaxmap.geometry import rotation_angle, se3_inverse, validate_pose
+from jaxmap.io.kitti import write_poses
+
+
+def write_kitti(path, poses) -> None:
+    """Write poses [N,4,4] as a KITTI pose file (float64 values round-trip exactly)."""
+    write_poses(path, poses)
+
+
+def write_tum(path, timestamps, poses) -> None:
+    """Write a TUM trajectory: timestamps [N] (s), poses [N,4,4] -> lines `t tx ty tz qx qy qz qw`."""
+    poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    ts = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+    if len(ts) != len(poses):
+        raise DataError(f"{path}: {len(ts)} timestamps for {len(poses)} poses")
+    q = Rotation.from_matrix(poses[:, :3, :3]).as_quat()          # x, y, z, w
+    d = os.path.dirname(os.fspath(path))
+    if d:
+        os.makedirs(d, exist_ok=True)
+    with open(os.fspath(path), "w") as f:
+        f.write("# timestamp tx ty tz qx qy qz qw\n")
+        for t, T, qi in zip(ts, poses, q):
+            f.write(" ".join(repr(float(v)) for v in (t, *T[:3, 3], *qi)) + "\n")
+
+
+def _read_table(path) -> tuple[np.ndarray, list[int]]:
+    """Numbers of a whitespace table ([L,C] float64) and the file line number of each row.
+
+    Blank and '#' lines are skipped. DataError (naming file and line) for a ragged table or a non-number."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise DataError(f"{path}: trajectory file not found")
+    rows, lines = [], []
+    with open(path) as f:
+        for lineno, line in enumerate(f, start=1):
+            words = line.split()
+            if not words or words[0].startswith("#"):
+                continue
+            if rows and len(words) != len(rows[0]):
+                raise DataError(f"{path} line {lineno}: {len(words)} numbers, but the first pose line has "
+                                f"{len(rows[0])}; every line must have the same number of columns")
+            try:
+                rows.append([float(w) for w in words])
+            except ValueError:
+                raise DataError(f"{path} line {lineno}: not a number in {line.strip()!r}") from None
+            lines.append(lineno)
+    if not rows:
+        return np.zeros((0, 0)), []
+    return np.asarray(rows, dtype=np.float64), lines
+
+
+def _tum_to_poses(path, table: np.ndarray, lines: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    q = table[:, 4:8]
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > 1e-3)
+    if len(bad):
+        raise DataError(f"{path} line {lines[bad[0]]}: quaternion (qx qy qz qw) has norm {norm[bad[0]]:.6f}, "
+                        "expected 1")
+    poses = np.tile(np.eye(4), (len(table), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(q / norm[:, None]).as_matrix()
+    poses[:, :3, 3] = table[:, 1:4]
+    return table[:, 0].copy(), poses
+
+
+def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory -> (timestamps [N] float64, poses [N,4,4] float64). DataError if malformed."""
+    table, lines = _read_table(path)
+    if table.size == 0:
+        return np.zeros(0), np.zeros((0, 4, 4))
+    if table.shape[1] != 8:
+        raise DataError(f"{os.fspath(path)}: TUM lines need 8 numbers (t tx ty tz qx qy qz qw), found "
+                        f"{table.shape[1]}")
+    _check_finite(path, table, lines)
+    return _tum_to_poses(path, table, lines)
+
+
+def _check_finite(path, table, lines):
+    bad = np.flatnonzero(~np.all(np.isfinite(table), axis=1))
+    if len(bad):
+        raise DataError(f"{os.fspath(path)} line {lines[bad[0]]}: NaN or inf value")
+
+
+def read_pose_snapshot(path, n_expected: int | None = None) -> np.ndarray:
+    """Read poses [N,4,4] float64 from a TUM (8 columns) or KITTI (12 columns) file, detected per file.
+
+    n_expected: if given, the file must hold exactly that many poses. Raises DataError naming the file
+    (and line) for a missing file, a wrong column count, a non-number, NaN/inf, a non-rigid rotation,
+    or a wrong number of poses.
+    """
+    path = os.fspath(path)
+    table, lines = _read_table(path)
+    if table.size == 0:
+        raise DataError(f"{path}: no poses found (expected TUM lines of 8 numbers or KITTI lines of 12)")
+    cols = table.shape[1]
+    if cols not in (8, 12):
+        raise DataError(f"{path}: {cols} numbers per line; expected 8 (TUM: t tx ty tz qx qy qz qw) or "
+                        "12 (KITTI: row-major 3x4 [R|t])")
+    _check_finite(path, table, lines)
+    if cols == 8:
+        _, poses = _tum_to_poses(path, table, lines)
+    else:
+        poses = np.tile(np.eye(4), (len(table), 1, 1))
+        poses[:, :3, :] = table.reshape(-1, 3, 4)
+        for T, lineno in zip(poses, lines):
+            validate_pose(T, where=f"{path} line {lineno}")
+    if n_expected is not None and len(poses) != int(n_expected):
+        raise DataError(f"{path}: {len(poses)} poses, expected {int(n_expected)} (one per frame)")
+    return poses
+
+
+def align_se3(est_xyz: np.ndarray, gt_xyz: np.ndarray) -> np.ndarray:
+    """Rigid transform S [4,4] minimising sum |S est - gt|^2 (Umeyama / Horn, no scale).
+
+    est_xyz, gt_xyz: [N,3] corresponding positions (N >= 3, not all collinear for a unique answer)."""
+    mu_e, mu_g = est_xyz.mean(0), gt_xyz.mean(0)
+    H = (gt_xyz - mu_g).T @ (est_xyz - mu_e)             # cross-covariance [3,3]
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    S = np.eye(4)
+    S[:3, :3] = R
+    S[:3, 3] = mu_g - R @ mu_e
+    return S
+
+
+def ate(est, gt, align: str = "none") -> dict:
+    """Absolute trajectory error of estimated vs ground-truth poses ([N,4,4] each, same frames).
+
+    align: "none" compares as is; "se3" first applies the rigid transform that best aligns the estimated
+    positions to the ground truth (Umeyama). Returns dict(rmse_m, mean_m, max_m) of the position errors
+    and rot_rmse_deg, the RMSE of the rotation angle of gt_i^-1 @ est_i (after alignment).
+    """
+    est = np.asarray(est, dtype=np.float64).reshape(-1, 4, 4)
+    gt = np.asarray(gt, dtype=np.float64).reshape(-1, 4, 4)
+    if est.shape != gt.shape or len(est) == 0:
+        raise ValueError(f"ate: need equally many poses, got {est.shape} and {gt.shape}")
+    if align == "se3":
+        est = align_se3(est[:, :3, 3], gt[:, :3, 3]) @ est
+    elif align != "none":
+        raise ValueError(f"ate: align must be 'none' or 'se3', got {align!r}")
+    err = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
+    rot = np.degrees(rotation_angle(se3_inverse(gt)[:, :3, :3] @ est[:, :3, :3]))
+    return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "mean_m": float(err.mean()), "max_m": float(err.max()),
+            "rot_rmse_deg": float(np.sqrt(np.mean(rot ** 2)))}
