@@ -35,9 +35,9 @@ class ConfigError(JaxmapError, ValueError):
 class DataConfig:
     path: str = "data/city"          # sequence directory (KITTI layout or depth layout)
     kind: str = "auto"               # "auto", "kitti" (LiDAR scans) or "depth" (depth images)
-    begin_frame: int = 0
+    begin_frame: int = 0             # first frame to map (index into the sequence)
     end_frame: int = -1              # exclusive; -1 = to the end
-    every_frame: int = 1
+    every_frame: int = 1             # map every n-th frame (1 = all)
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,7 @@ class PreprocessConfig:
     min_range_m: float = 1.5         # points closer to the sensor are dropped (ego vehicle)
     max_range_m: float = 20.0        # "pc_radius_m" of the anchors: crop radius
     min_z_m: float = -10.0           # height crop in the sensor frame
-    max_z_m: float = 30.0
+    max_z_m: float = 30.0            # upper height crop in the sensor frame
     vox_down_m: float = 0.05         # voxel downsample before sampling (0 = off)
     normal_knn: int = 20             # neighbours for PCA normals
 
@@ -54,26 +54,26 @@ class PreprocessConfig:
 class SamplingConfig:
     label_mode: str = "normal"       # "normal" (N3), "projective", "corrected" (ablations)
     surface_sample_range_m: float = 0.3   # truncation band half-width (tr)
-    surface_sample_n: int = 3
+    surface_sample_n: int = 3        # near-surface samples per scan point, inside the truncation band
     sigma_m: float = 0.05            # std of the Gaussian offset inside the band (~ range noise)
-    free_sample_n: int = 3
+    free_sample_n: int = 3           # free-space samples per scan point, on the ray before the band
     free_band_m: float = 1.0         # free samples lie in the last free_band_m before the band
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
 
 
 @dataclass(frozen=True)
 class GridConfig:
-    leaf_vox_size: float = 0.2
-    feature_levels: int = 3
-    feature_dim: int = 8
+    leaf_vox_size: float = 0.2       # edge length of the leaf (finest) voxels, metres
+    feature_levels: int = 3          # levels of corner features; level l has voxels of edge `leaf_vox_size * 2**l`
+    feature_dim: int = 8             # feature channels per corner
     feature_std: float = 1e-4        # features initialised N(0, std)
     max_load: float = 0.5            # grow (rehash, outside jit) past this load factor
 
 
 @dataclass(frozen=True)
 class DecoderConfig:
-    hidden_dim: int = 32
-    hidden_layers: int = 2
+    hidden_dim: int = 32             # width of the SDF decoder's hidden layers
+    hidden_layers: int = 2           # hidden layers of the SDF decoder (ReLU)
 
 
 @dataclass(frozen=True)
@@ -84,12 +84,12 @@ class TrainConfig:
     nt: int = 10                     # voxels with fewer pairs get np/3
     hierarchical: bool = True        # False = uniform pairs (ablation)
     batch_size: int = 8192           # pairs per iteration when hierarchical is False
-    lr: float = 0.01
+    lr: float = 0.01                 # Adam learning rate of the features and the decoder
     sigma_sigmoid_m: float = 0.1     # beta of the BCE sigmoid
     weight_e: float = 0.08           # eikonal weight
     freeze_after_frame: int = 20     # decoder frozen after this many frames
-    reset_adam_each_frame: bool = False
-    seed: int = 0
+    reset_adam_each_frame: bool = False # restart the Adam moments every frame (as the original N3 code does)
+    seed: int = 0                    # PRNG seed: feature and decoder initialisation, sampling
 
 
 @dataclass(frozen=True)
@@ -102,7 +102,7 @@ class WindowConfig:
 
 @dataclass(frozen=True)
 class MeshConfig:
-    resolution_m: float = 0.1
+    resolution_m: float = 0.1        # marching-cubes lattice spacing, metres (must divide leaf_vox_size)
     min_component_faces: int = 50    # drop connected components smaller than this
     mask_level: int = 1              # mesh inside allocated voxels of this feature level (0 = leaf)
     min_leaf_corners: int = 6        # ... where at least this many leaf-voxel corners have features
@@ -129,7 +129,7 @@ class MapConfig:
     window: WindowConfig = field(default_factory=WindowConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
-    output: str = "runs/map"
+    output: str = "runs/map"         # run directory (`--out` overrides it)
     checkpoint_every: int = 10       # frames between checkpoints (also written at the end and on Ctrl-C)
 
 
@@ -154,6 +154,7 @@ class LatentMapConfig:
     jacobian_sign: float = -1.0       # first-order term F - J t (-1); +1 = the paper's eq. 5; 0 = none
     softmax_temperature: float = 1.0  # softmax only: weights exp(-|t|^2 / T), t in voxel units
     k_neighbours: int = 8             # softmax only: local voxels gathered per global voxel
+    splat_power: float = 2.0          # trilinear only: splat weights^power, renormalised (1 = plain trilinear)
     remap_min_rotation_deg: float = 0.05  # remap a keyframe whose pose moved more than this ...
     remap_min_translation_m: float = 0.002  # ... or this
     initial_capacity: int = 16384     # hash-table slots of the global map at start (grows, logged)
@@ -178,7 +179,7 @@ class ImtConfig:
     mesh: LatentMeshConfig = field(default_factory=LatentMeshConfig)
     eval: EvalConfig = field(default_factory=lambda: EvalConfig(threshold_m=0.05, cull_distance_m=0.1,
                                                                 n_samples=1_000_000))
-    output: str = "runs/imt"
+    output: str = "runs/imt"            # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
 
 

@@ -39,8 +39,9 @@ import tokenize
 import typing
 from typing import Any, Iterator, NamedTuple
 
-from jaxmap.config import MapConfig
+from jaxmap.config import ImtConfig, MapConfig
 from jaxmap.imt.prior import PriorConfig
+from jaxmap.slam.run import SlamConfig
 
 BEGIN = "<!-- config-reference:begin -->"
 END = "<!-- config-reference:end -->"
@@ -50,34 +51,15 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Without the third element, the first `configs/*.yaml` named in the title is used.
 ROOTS: list[tuple] = [
     ("jaxmap map (configs/city.yaml, ncd.yaml, rgbd.yaml)", MapConfig),
+    ("jaxmap imt (configs/room_imt.yaml)", ImtConfig),
+    ("jaxmap slam (configs/room_slam.yaml)", SlamConfig),
     ("jaxmap prior (configs/prior.yaml)", PriorConfig),
 ]
 
 # Descriptions of fields that have no comment in their dataclass nor in the shipped YAML yet, keyed by
 # "<declaring dataclass>.<field>". Move each into that dataclass as a trailing comment and delete it
 # here (the test says which entries have become redundant).
-PENDING_DESCRIPTIONS: dict[str, str] = {
-    "DataConfig.begin_frame": "first frame to map (index into the sequence)",
-    "DataConfig.every_frame": "map every n-th frame (1 = all)",
-    "PreprocessConfig.max_z_m": "upper height crop in the sensor frame",
-    "SamplingConfig.surface_sample_n": "near-surface samples per scan point, inside the truncation band",
-    "SamplingConfig.free_sample_n": "free-space samples per scan point, on the ray before the band",
-    "GridConfig.leaf_vox_size": "edge length of the leaf (finest) voxels, metres",
-    "GridConfig.feature_levels": "levels of corner features; level l has voxels of edge `leaf_vox_size * 2**l`",
-    "GridConfig.feature_dim": "feature channels per corner",
-    "DecoderConfig.hidden_dim": "width of the SDF decoder's hidden layers",
-    "DecoderConfig.hidden_layers": "hidden layers of the SDF decoder (ReLU)",
-    "TrainConfig.lr": "Adam learning rate of the features and the decoder",
-    "TrainConfig.reset_adam_each_frame": "restart the Adam moments every frame (as the original N3 code does)",
-    "TrainConfig.seed": "PRNG seed: feature and decoder initialisation, sampling",
-    "MeshConfig.resolution_m": "marching-cubes lattice spacing, metres (must divide leaf_vox_size)",
-    "MapConfig.output": "run directory (`--out` overrides it)",
-    "PriorTrainConfig.steps": "training steps",
-    "PriorTrainConfig.lr_final": "learning rate at the end of the cosine decay",
-    "PriorTrainConfig.val_every": "steps between validation passes",
-    "PriorTrainConfig.ckpt_every": "steps between orbax checkpoints",
-    "PriorConfig.output": "run directory (`--out` overrides it)",
-}
+PENDING_DESCRIPTIONS: dict[str, str] = {}
 
 
 class Leaf(NamedTuple):

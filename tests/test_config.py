@@ -55,14 +55,32 @@ def test_resolved_config_round_trips(tmp_path):
     assert load_config(None) == MapConfig()
 
 
-@pytest.mark.parametrize("name", ["city", "ncd", "rgbd"])
+def _schema(name):
+    if name == "room_imt":
+        from jaxmap.config import ImtConfig
+
+        return ImtConfig
+    if name == "room_slam":
+        from jaxmap.slam.run import SlamConfig
+
+        return SlamConfig
+    if name == "prior":
+        from jaxmap.imt.prior import PriorConfig
+
+        return PriorConfig
+    from jaxmap.config import MapConfig
+
+    return MapConfig
+
+
+@pytest.mark.parametrize("name", ["city", "ncd", "rgbd", "room_imt", "room_slam", "prior"])
 def test_every_shipped_config_loads_and_sets_every_key(name):
     """Each shipped config is valid and spells out every key, so it documents the full schema."""
     import dataclasses
 
     import yaml
 
-    cfg = load_config(f"configs/{name}.yaml")
+    cfg = load_config(f"configs/{name}.yaml", schema=_schema(name))
     raw = yaml.safe_load(open(f"configs/{name}.yaml"))
 
     def keys(d, prefix=""):
@@ -77,3 +95,11 @@ def test_every_shipped_config_loads_and_sets_every_key(name):
         return out
 
     assert keys(raw) == schema_keys(cfg)
+
+
+def test_every_config_file_is_checked_above():
+    import glob
+    import os
+
+    names = {os.path.basename(p)[:-5] for p in glob.glob("configs/*.yaml")}
+    assert names == {"city", "ncd", "rgbd", "room_imt", "room_slam", "prior"}

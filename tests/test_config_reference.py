@@ -88,7 +88,7 @@ def test_comment_sources(tmp_path):
     """Dataclass trailing comments (inherited fields from their declaring class), YAML fallback with
     aligned continuation lines, and quotes protecting a '#'."""
     notes = cr.dataclass_comments(TrainConfig)
-    assert notes["iters"] == "K iterations per frame" and "lr" not in notes
+    assert notes["iters"] == "K iterations per frame" and notes["lr"].startswith("Adam learning rate")
     leaf = {lf.key: lf for lf in cr.iter_leaves(_MapChanged)}
     assert leaf["train.lr"].owner is TrainConfig and leaf["train.iters"].owner is _TrainChanged
     y = tmp_path / "c.yaml"

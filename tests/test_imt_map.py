@@ -216,11 +216,11 @@ def test_transform_there_and_back_returns_the_decoded_sdf(prior):
     s1, _, v1 = query(prior, back, probe)
     ok = v0 & v1
     assert ok.mean() > 0.95
-    # One transform of this scene differs from re-encoding by 4.6 mm on average (the two-branch test
+    # One transform of this scene differs from re-encoding by 4.3 mm on average (the two-branch test
     # above: a second-order residual of the first-order expansion, plus the blur of splatting onto 8
     # voxels); the round trip makes two transforms, so its error is bounded by about twice that
-    # (measured: mean 7.1 mm, median 5.6 mm). 1.2 cm is 0.12 voxel; a wrong rotation of the latents or
-    # a centre moved to the wrong voxel gives errors of several centimetres.
+    # (measured: mean 5.2 mm, median 3.6 mm; 7.1 / 5.6 mm with plain trilinear splats). 1.2 cm is 0.12
+    # voxel; a wrong rotation of the latents or a centre moved to the wrong voxel gives several cm.
     err = np.abs(s0 - s1)[ok]
     assert err.mean() < 0.012 and np.median(err) < 0.009, (err.mean(), np.median(err))
 

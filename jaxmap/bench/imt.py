@@ -67,9 +67,10 @@ def two_branch(mapper, seq, ids, cfg) -> dict:
 
     vs = cfg.map.voxel_size_m
     variants = {
-        "jaxmap: trilinear, F - J t": dict(method="trilinear", jacobian_sign=-1.0),
-        "paper sign: trilinear, F + J t": dict(method="trilinear", jacobian_sign=1.0),
-        "no Jacobian: trilinear, F": dict(method="trilinear", jacobian_sign=0.0),
+        "jaxmap: trilinear^2, F - J t": dict(method="trilinear", jacobian_sign=-1.0),
+        "plain trilinear, F - J t": dict(method="trilinear", jacobian_sign=-1.0, splat_power=1.0),
+        "paper sign: trilinear^2, F + J t": dict(method="trilinear", jacobian_sign=1.0),
+        "no Jacobian: trilinear^2, F": dict(method="trilinear", jacobian_sign=0.0),
         "softmax (voxel units), F - J t": dict(method="softmax", jacobian_sign=-1.0, temperature=1.0),
         "paper: softmax (metres), F + J t": dict(method="softmax", jacobian_sign=1.0, temperature=1.0 / vs ** 2),
     }
@@ -111,7 +112,7 @@ def time_ops(mapper, ks) -> dict:
             m = lm.remove(m, b)
             jax.block_until_ready(m.latent)
             t1 = time.perf_counter()
-            c = splat_trilinear(b, T.astype(np.float32), vs, -1.0)
+            c = splat_trilinear(b, T.astype(np.float32), vs, -1.0, 2.0)
             jax.block_until_ready(c.latent)
             t2 = time.perf_counter()
             m = lm.fuse(m, c)

@@ -32,7 +32,7 @@ def remap_options(cfg: ImtConfig) -> RemapOptions:
     c = cfg.map
     return RemapOptions(min_rotation_deg=c.remap_min_rotation_deg, min_translation_m=c.remap_min_translation_m,
                         method=c.interpolation, jacobian_sign=c.jacobian_sign,
-                        temperature=c.softmax_temperature, k=c.k_neighbours)
+                        temperature=c.softmax_temperature, k=c.k_neighbours, splat_power=c.splat_power)
 
 
 class ImtMapper:

@@ -80,16 +80,16 @@ class PriorDataConfig:
 
 @dataclass(frozen=True)
 class PriorTrainConfig:
-    steps: int = 10000
+    steps: int = 10000               # training steps
     batch_size: int = 32          # voxels per step
     lr: float = 2e-3              # Adam peak learning rate
     warmup: int = 200             # linear warm-up steps, then cosine decay
-    lr_final: float = 2e-5
+    lr_final: float = 2e-5           # learning rate at the end of the cosine decay
     clamp: float = 1.0            # labels and mean predictions clipped to +-clamp voxels in the NLL
     latent_reg: float = 1e-3      # weight of mean |F|^2
     grad_clip: float = 1.0        # global gradient-norm clip
-    val_every: int = 500
-    ckpt_every: int = 1000
+    val_every: int = 500             # steps between validation passes
+    ckpt_every: int = 1000           # steps between orbax checkpoints
     resume: bool = False          # continue from the latest checkpoint of the run directory
     progress: bool = True         # tqdm progress bar
     seed: int = 0                 # parameter init and noise
@@ -102,7 +102,7 @@ class PriorConfig:
     model: PriorModelConfig = field(default_factory=PriorModelConfig)
     data: PriorDataConfig = field(default_factory=PriorDataConfig)
     train: PriorTrainConfig = field(default_factory=PriorTrainConfig)
-    output: str = "runs/prior"
+    output: str = "runs/prior"       # run directory (`--out` overrides it)
     export: str = ""              # also write the trained weights to this path ("" = don't)
 
 

@@ -99,6 +99,7 @@ class RemapOptions:
     jacobian_sign: float = -1.0          # -1: correct first-order term; +1: paper eq. 5; 0: none
     temperature: float = 1.0             # softmax only (voxel units^2)
     k: int = 8                           # softmax only: neighbours per global voxel
+    splat_power: float = 2.0             # trilinear only: sharpening of the splat weights (1 = plain)
 
 
 def _moved(a, b, opts: RemapOptions) -> bool:
@@ -125,7 +126,7 @@ def contributions(store: KeyframeStore, ids, poses, voxel_size: float, opts: Rem
         b = VoxelBatch(*(np.concatenate([np.asarray(x), np.zeros((pad - n,) + np.shape(x)[1:], np.asarray(x).dtype)])
                          for x in b))
         T = np.concatenate([T, np.broadcast_to(np.eye(4, dtype=np.float32), (pad - n, 4, 4))])
-        parts.append(splat_trilinear(b, T, voxel_size, float(opts.jacobian_sign)))
+        parts.append(splat_trilinear(b, T, voxel_size, float(opts.jacobian_sign), float(opts.splat_power)))
     elif moved:  # softmax gathers per keyframe (it needs each local map's own lattice)
         for kf, d in zip(moved, deltas):
             m = fuse(_empty_like(voxel_size, store.locals_[kf]), store.locals_[kf], log=False)

@@ -13,7 +13,8 @@ and a pose `T = [R | t]` from frame A to the global frame. Then, per local voxel
    the term.
 3. the expansions are combined with one of two weightings (`method`):
    * ``"trilinear"`` (default): each local voxel splats onto the 8 global voxels around `c'_m` with
-     trilinear weights `s_nm` (a partition of unity, so the total weight is conserved):
+     trilinear weights sharpened by a power (2 by default) and renormalised, `s_nm` (a partition of
+     unity, so the total weight is conserved):
      `F_n = sum_m s_nm w_m F_n|m / sum_m s_nm w_m`, `w_n = sum_m s_nm w_m`. The splats are returned
      as a `VoxelBatch` and summed by `fuse`, so batching many keyframes is a concatenation.
    * ``"softmax"`` (the paper's eq. 9-10): every global voxel within one voxel of some `c'_m` gathers
@@ -47,9 +48,15 @@ def _rotate_batch(latent, jac, R):
     return out["F"].value, out["J"].value
 
 
-@functools.partial(jax.jit, static_argnames=("voxel_size", "jacobian_sign"))
-def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sign: float = -1.0) -> VoxelBatch:
+@functools.partial(jax.jit, static_argnames=("voxel_size", "jacobian_sign", "power"))
+def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sign: float = -1.0,
+                    power: float = 2.0) -> VoxelBatch:
     """Trilinear splats of a voxel batch moved by `T` ([4, 4], frame of b -> global).
+
+    power: the 8 trilinear weights of a local voxel are raised to this power and renormalised to
+    sum 1 (so the weight mass is still conserved); > 1 favours the nearest global voxels, whose
+    first-order expansions are the most accurate (power 2 lowers the two-branch error by 20-40 %
+    against plain trilinear weights, `jaxmap bench imt`).
 
     b: [P] entries -> [8P] entries on the global grid (fuse them, or aggregate with `transform`).
     `T` may also be [P, 4, 4] (one pose per entry: many keyframes at once).
@@ -65,6 +72,9 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     lat, jac = jax.vmap(_rotate_batch)(b.latent, b.jac, R)                 # F R^T, R J R^T per entry
     corners = jnp.asarray(CORNERS, jnp.float32)                            # [8, 3]
     s = jnp.prod(jnp.where(corners[None] > 0, frac[:, None], 1.0 - frac[:, None]), axis=-1)  # [P, 8]
+    if power != 1.0:
+        s = s ** power
+        s = s / jnp.sum(s, axis=-1, keepdims=True)
     tnm = (base[:, None] + corners[None]) - u[:, None]                     # [P, 8, 3] voxel units
     lat_n = lat[:, None] + jacobian_sign * jnp.einsum("pcak,pnk->pnca", jac, tnm)   # [P, 8, C, 3]
     p = b.coords.shape[0]
@@ -120,22 +130,24 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
 
 
 def transform(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: float = -1.0,
-              temperature: float = 1.0, k: int = 8) -> LatentMap:
+              temperature: float = 1.0, k: int = 8, splat_power: float = 2.0) -> LatentMap:
     """The map `m` moved by `T` ([4, 4], m's frame -> global) and interpolated onto the global grid.
 
     method: "trilinear" (splat, weight-conserving) or "softmax" (paper eq. 9-10, K nearest).
     jacobian_sign: -1 (correct first-order term), +1 (paper eq. 5/9), 0 (no Jacobian term).
     temperature: softmax temperature in voxel units^2 (paper: 1 / voxel_size^2).
+    splat_power: trilinear only, see `splat_trilinear` (1 = plain trilinear weights).
     Returns a new `LatentMap` on the global grid (same voxel size).
     """
-    b = transform_batch(m, T, method=method, jacobian_sign=jacobian_sign, temperature=temperature, k=k)
+    b = transform_batch(m, T, method=method, jacobian_sign=jacobian_sign, temperature=temperature, k=k,
+                        splat_power=splat_power)
     # Splats reach ~2x as many voxels as the map has; start there so the table grows at most once.
     cap = 1 << max(10, int(np.ceil(np.log2(4 * max(m.num_active(), 1)))))
     return fuse(empty(m.voxel_size, capacity=cap, channels=m.channels), b, log=False)
 
 
 def transform_batch(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: float = -1.0,
-                    temperature: float = 1.0, k: int = 8) -> VoxelBatch:
+                    temperature: float = 1.0, k: int = 8, splat_power: float = 2.0) -> VoxelBatch:
     """Like `transform`, but returns the global-grid contribution as a `VoxelBatch` to `fuse`/`remove`."""
     if method not in METHODS:
         raise ValueError(f"unknown interpolation method {method!r}; choose one of {METHODS}")
@@ -143,7 +155,7 @@ def transform_batch(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign
     if T.shape != (4, 4):
         raise ValueError(f"T must be [4,4], got {T.shape}")
     if method == "trilinear":
-        return splat_trilinear(m.as_batch(), T, m.voxel_size, float(jacobian_sign))
+        return splat_trilinear(m.as_batch(), T, m.voxel_size, float(jacobian_sign), float(splat_power))
     out, overflow = _softmax_core(m, T, jnp.float32(temperature), float(jacobian_sign), int(k))
     if bool(overflow):  # 16x slots for at most 8x keys: only an adversarial hash clustering gets here
         raise hashing.CapacityError("transform: the scratch table of candidate voxels overflowed")

@@ -47,13 +47,13 @@ class FrontEndConfig:
     """
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
-    keyframe_every: int = 1
-    keyframe_min_translation_m: float = 0.0
-    keyframe_min_rotation_deg: float = 0.0
-    loop_cooldown: int = 0
-    graph_max_corr_m: float | None = None
-    preference_loop_closure: float = 1.0
-    edge_prune_threshold: float = 0.25
+    keyframe_every: int = 1             # a keyframe needs at least this many frames since the last keyframe ...
+    keyframe_min_translation_m: float = 0.0  # ... and this much translation (or the rotation below; both 0 = none)
+    keyframe_min_rotation_deg: float = 0.0  # ... or this much rotation since it
+    loop_cooldown: int = 0              # after an accepted loop, this many keyframes skip the loop search
+    graph_max_corr_m: float | None = None  # pose-graph line-process distance (m); null = loops.max_correction_m
+    preference_loop_closure: float = 1.0  # open3d GlobalOptimizationOption.preference_loop_closure
+    edge_prune_threshold: float = 0.25  # open3d: loop edges with a line-process weight below this are pruned
 
     @classmethod
     def lidar(cls, **overrides) -> "FrontEndConfig":

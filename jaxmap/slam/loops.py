@@ -45,20 +45,20 @@ class LoopConfig:
     free_space_res_deg: angular bin of the range images for the free-space test
     max_iter:           ICP iterations per stage
     """
-    radius_m: float = 1.0
-    min_gap: int = 10
-    max_candidates: int = 3
-    max_corr_m: float = 0.3
-    fine_corr_m: float = 0.06
-    min_fitness: float = 0.6
-    max_rmse_m: float = 0.06
-    max_correction_m: float = 0.5
-    max_correction_deg: float = 15.0
-    min_constraint: float = 0.005
-    max_conflict: float = 0.03
-    free_space_margin_m: float = 0.05
-    free_space_res_deg: float = 1.0
-    max_iter: int = 40
+    radius_m: float = 1.0               # candidates: keyframes whose estimated position is within this distance (m)
+    min_gap: int = 10                   # ... and at least this many keyframes back
+    max_candidates: int = 3             # at most this many candidates verified per keyframe (nearest first)
+    max_corr_m: float = 0.3             # correspondence distance (m) of the first ICP stage; must exceed the drift at the loop
+    fine_corr_m: float = 0.06           # correspondence distance (m) of the last, fine ICP stage
+    min_fitness: float = 0.6            # minimum overlap fraction, required both ways
+    max_rmse_m: float = 0.06            # maximum inlier RMSE (m) of the fine stage
+    max_correction_m: float = 0.5       # largest accepted ICP correction of the initial guess (m)
+    max_correction_deg: float = 15.0    # largest accepted ICP correction of the initial guess (deg)
+    min_constraint: float = 0.005       # smallest eigenvalue of the point-to-plane translation block per correspondence
+    max_conflict: float = 0.03          # largest fraction of points in the other scan's free space (either way)
+    free_space_margin_m: float = 0.05   # a point is in free space this far (+10 % of range) in front of the other scan
+    free_space_res_deg: float = 1.0     # angular bin of the range images of the free-space test
+    max_iter: int = 40                  # ICP iterations per stage
 
     @classmethod
     def lidar(cls, **overrides) -> "LoopConfig":

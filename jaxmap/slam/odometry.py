@@ -104,7 +104,7 @@ class OdometryConfig:
 
     voxel_m:        downsampling voxel (m) of the scans fed to ICP
     max_corr_m:     ICP correspondence distance of the fine stage (m); about 2 voxels
-    coarse_factor:  a first ICP stage runs with voxel and max_corr scaled by this (1 = single stage);
+    coarse_factor:  a first ICP stage runs with voxel and max_corr scaled by this (1 = single stage);  # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
                     it widens the basin of convergence when the motion prior is off
     retry_below_fitness: when ICP from the motion prior reaches a lower fitness, a global registration
                     (FPFH + RANSAC, then ICP) is tried too and the better-fitting result kept; 0 disables.
@@ -116,17 +116,17 @@ class OdometryConfig:
     min_points:     fewer downsampled points than this -> the frame is not registered
     min_range_m, max_range_m: range crop of the input scan (m)
     """
-    voxel_m: float = 0.03
-    max_corr_m: float = 0.06
-    coarse_factor: float = 2.5
-    retry_below_fitness: float = 0.8
-    min_fitness: float = 0.5
-    max_rmse_m: float = 0.04
-    max_iter: int = 30
-    normals_k: int = 15
-    min_points: int = 100
-    min_range_m: float = 0.1
-    max_range_m: float = 10.0
+    voxel_m: float = 0.03               # downsampling voxel (m) of the scans fed to ICP
+    max_corr_m: float = 0.06            # ICP correspondence distance of the fine stage (m); about 2 voxels
+    coarse_factor: float = 2.5          # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
+    retry_below_fitness: float = 0.8    # below this fitness a global registration (FPFH + RANSAC) is tried too; 0 = never
+    min_fitness: float = 0.5            # ICP rejected below this fraction of matched source points
+    max_rmse_m: float = 0.04            # ICP rejected above this inlier RMSE (m)
+    max_iter: int = 30                  # ICP iterations per stage
+    normals_k: int = 15                 # neighbours for the PCA normals
+    min_points: int = 100               # fewer downsampled points than this: the frame is not registered
+    min_range_m: float = 0.1            # range crop of the input scan (m), near
+    max_range_m: float = 10.0           # range crop of the input scan (m), far
 
     @classmethod
     def lidar(cls, **overrides) -> "OdometryConfig":

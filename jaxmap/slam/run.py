@@ -52,7 +52,7 @@ class SlamConfig:
     external_poses: str = ""          # directory of pose snapshots replacing the front end ("" = our own)
     mesh_at_loops: bool = True        # write meshes before and after each loop closure
     n3_config: str = ""               # also build an N3 map from the optimised poses with this config
-    output: str = "runs/slam"
+    output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
 
     def imt(self) -> ImtConfig:
