@@ -52,7 +52,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 ROOTS: list[tuple] = [
     ("jaxmap map (configs/city.yaml, ncd.yaml, rgbd.yaml)", MapConfig),
     ("jaxmap imt (configs/room_imt.yaml)", ImtConfig),
-    ("jaxmap slam (configs/room_slam.yaml)", SlamConfig),
+    ("jaxmap slam (configs/room_slam.yaml, city_slam.yaml)", SlamConfig),
     ("jaxmap prior (configs/prior.yaml)", PriorConfig),
 ]
 

@@ -60,7 +60,7 @@ def _schema(name):
         from jaxmap.config import ImtConfig
 
         return ImtConfig
-    if name == "room_slam":
+    if name in ("room_slam", "city_slam"):
         from jaxmap.slam.run import SlamConfig
 
         return SlamConfig
@@ -73,7 +73,7 @@ def _schema(name):
     return MapConfig
 
 
-@pytest.mark.parametrize("name", ["city", "ncd", "rgbd", "room_imt", "room_slam", "prior"])
+@pytest.mark.parametrize("name", ["city", "ncd", "rgbd", "room_imt", "room_slam", "city_slam", "prior"])
 def test_every_shipped_config_loads_and_sets_every_key(name):
     """Each shipped config is valid and spells out every key, so it documents the full schema."""
     import dataclasses
@@ -102,4 +102,4 @@ def test_every_config_file_is_checked_above():
     import os
 
     names = {os.path.basename(p)[:-5] for p in glob.glob("configs/*.yaml")}
-    assert names == {"city", "ncd", "rgbd", "room_imt", "room_slam", "prior"}
+    assert names == {"city", "ncd", "rgbd", "room_imt", "room_slam", "city_slam", "prior"}
