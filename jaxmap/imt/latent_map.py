@@ -310,8 +310,10 @@ def encode_world(prior, points_w, normals_w, voxel_size: float, min_points: int 
     nrm = np.zeros((n_pad, 3), np.float32)
     pts[:n], nrm[:n] = points_w, normals_w
     mask = np.arange(n_pad) < n
-    if capacity is None:  # a frame's voxels are ~n/8 for surfaces sampled at voxel/4 spacing
-        capacity = 1 << max(10, math.ceil(math.log2(n_pad / 2)))
+    if capacity is None:
+        # A frame has n/8 (dense surfaces at voxel/4 spacing) to n/3 (sparse, small frames) voxels: n_pad/2
+        # rows cover both, so a retry (a second encode and a compile) is rare.
+        capacity = 1 << max(10, math.ceil(math.log2(n_pad)))
     while True:
         m, overflow = _encode_core(prior, pts, nrm, mask, jnp.float32(min_points), float(voxel_size),
                                    int(capacity), with_jacobian)
