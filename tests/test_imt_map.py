@@ -6,7 +6,6 @@ a per-voxel loop for the encoder), and the geometry against exact cases.
 from __future__ import annotations
 
 import json
-import os
 
 import jax.numpy as jnp
 import numpy as np

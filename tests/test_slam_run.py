@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from jaxmap.config import DataConfig, EvalConfig
+from jaxmap.config import DataConfig
 from jaxmap.errors import DataError
 from jaxmap.geometry import make_pose, rotation_from_axis_angle
 from jaxmap.io import open_sequence
