@@ -30,15 +30,35 @@ def _checkpointer():
     return ocp.PyTreeCheckpointer()
 
 
-def save_mapper(mapper, path: str) -> None:
-    """Write `mapper` (an N3Mapper) to directory `path` atomically (replacing an older one)."""
-    path = os.path.abspath(path)
+def save_tree(path: str, tree, meta: dict) -> None:
+    """Write `tree` (an orbax PyTree, under `state/`) and `meta` (`meta.json`) to directory `path`
+    atomically: into `path.tmp`, renamed over any older checkpoint only once complete."""
+    path = os.path.abspath(path)  # orbax only takes absolute paths
     tmp = path + ".tmp"
     if os.path.exists(tmp):
         shutil.rmtree(tmp)
     os.makedirs(tmp)
-    state = jax.device_get(mapper.state)
-    _checkpointer().save(os.path.join(tmp, "state"), state)
+    _checkpointer().save(os.path.join(tmp, "state"), jax.device_get(tree))
+    with open(os.path.join(tmp, "meta.json"), "w") as f:
+        json.dump(meta, f)
+    if os.path.exists(path):
+        shutil.rmtree(path)
+    os.replace(tmp, path)
+
+
+def read_meta(path: str, what: str = "jaxmap") -> tuple[str, dict]:
+    """`(absolute path, meta.json contents)` of a checkpoint written by `save_tree`; a clear error
+    when `path` is not one (`what` names the kind of checkpoint expected)."""
+    path = os.path.abspath(path)
+    meta_path = os.path.join(path, "meta.json")
+    if not os.path.isfile(meta_path):
+        raise DataError(f"{path}: not a {what} checkpoint (no meta.json); pass RUN_DIR/checkpoint")
+    with open(meta_path) as f:
+        return path, json.load(f)
+
+
+def save_mapper(mapper, path: str) -> None:
+    """Write `mapper` (an N3Mapper) to directory `path` atomically (replacing an older one)."""
     s = mapper.state
     meta = {
         "config": to_dict(mapper.cfg),
@@ -51,11 +71,7 @@ def save_mapper(mapper, path: str) -> None:
         },
         "timings": mapper.timings,
     }
-    with open(os.path.join(tmp, "meta.json"), "w") as f:
-        json.dump(meta, f)
-    if os.path.exists(path):
-        shutil.rmtree(path)
-    os.replace(tmp, path)
+    save_tree(path, s, meta)
 
 
 def load_mapper(path: str):
@@ -64,13 +80,8 @@ def load_mapper(path: str):
     from jaxmap.n3 import window
     from jaxmap.n3.mapper import N3Mapper
 
-    path = os.path.abspath(path)  # orbax only takes absolute paths
-    meta_path = os.path.join(path, "meta.json")
-    if not os.path.isfile(meta_path):
-        raise DataError(f"{path}: not a jaxmap checkpoint (no meta.json); pass RUN_DIR/checkpoint")
-    with open(meta_path) as f:
-        meta = json.load(f)
-    cfg = from_dict(MapConfig, meta["config"], source=meta_path)
+    path, meta = read_meta(path)
+    cfg = from_dict(MapConfig, meta["config"], source=os.path.join(path, "meta.json"))
     m = N3Mapper(cfg)
     cap = meta["capacity"]
     s = m.state

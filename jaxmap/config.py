@@ -324,6 +324,24 @@ def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = (), s
     return apply_overrides(cfg, overrides)
 
 
+def shipped_config_path(name: str) -> str | None:
+    """`configs/<name>` of the source checkout (what `make demo` and `jaxmap bench` use), wherever the
+    command runs from; None for an installed package without it (the dataclass defaults then)."""
+    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "configs", name)
+    return os.path.normpath(path) if os.path.isfile(path) else None
+
+
+def config_from_args(args, schema: type = MapConfig) -> Any:
+    """The config of a mapping command: `args.config` with `--set` overrides, then `--data` and `--out`
+    (which override data.path and output)."""
+    overrides = list(args.overrides)
+    if getattr(args, "data", None):
+        overrides.append(f"data.path={args.data}")
+    if getattr(args, "out", None):
+        overrides.append(f"output={args.out}")
+    return load_config(args.config, overrides, schema=schema)
+
+
 def save_config(cfg: Any, path: str | os.PathLike) -> None:
     """Write the resolved config as YAML (what the run actually used)."""
     with open(path, "w") as f:

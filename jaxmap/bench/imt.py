@@ -128,9 +128,10 @@ def time_ops(mapper, ks) -> dict:
 
 
 def main(args) -> int:
-    from jaxmap.config import ImtConfig, load_config
+    from jaxmap.bench import base_overrides
+    from jaxmap.config import ImtConfig, load_config, shipped_config_path
     from jaxmap.imt.mapper import ImtMapper
-    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence, room_config_path, summarize
+    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence, summarize
     from jaxmap.synth.room import generate_room
 
     data, out = args.data, args.out
@@ -138,10 +139,7 @@ def main(args) -> int:
     if not os.path.isfile(os.path.join(data, "poses.txt")):
         print(f"[bench] synthesizing the room into {data}")
         generate_room(data, seed=0)
-    base = [f"data.path={data}", f"output={out}"] + list(args.overrides)
-    if args.frames:
-        base.append(f"data.end_frame={args.frames}")
-    cfg = load_config(room_config_path(), base, schema=ImtConfig)
+    cfg = load_config(shipped_config_path("room_imt.yaml"), base_overrides(args, data, out), schema=ImtConfig)
     seq = open_run_sequence(cfg)
     n = len(seq)
     res: dict = {"frames": n, "config": {"voxel_size_m": cfg.map.voxel_size_m, "every_frame": cfg.data.every_frame}}

@@ -43,6 +43,7 @@ def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bo
 
 def main(args) -> int:
     from jaxmap.baselines.tsdf import tsdf_from_sequence
+    from jaxmap.bench import base_overrides
     from jaxmap.config import load_config
     from jaxmap.metrics import evaluate_mesh_file
     from jaxmap.n3.run import _frame_selection, city_config_path, map_sequence
@@ -53,9 +54,7 @@ def main(args) -> int:
     if not os.path.isfile(os.path.join(data, "poses.txt")):
         print(f"[bench] synthesizing the default city into {data}")
         generate_city(data, seed=0)
-    base = [f"data.path={data}"] + list(args.overrides)
-    if args.frames:
-        base.append(f"data.end_frame={args.frames}")
+    base = base_overrides(args, data)
     names = list(VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
     cfg0 = load_config(city_config_path(), base)
     results = {}

@@ -19,9 +19,10 @@ COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_
 
 
 def main(args) -> int:
-    from jaxmap.config import load_config
+    from jaxmap.bench import base_overrides
+    from jaxmap.config import load_config, shipped_config_path
     from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence
-    from jaxmap.slam.run import SlamConfig, room_slam_config_path, run_slam
+    from jaxmap.slam.run import SlamConfig, run_slam
     from jaxmap.synth.room import generate_room
 
     from jaxmap.io import detect_kind
@@ -38,13 +39,8 @@ def main(args) -> int:
             print(f"[bench] synthesizing the room with 5 mm depth noise into {data}")
             generate_room(data, seed=0, noise_m=0.005)
     # LiDAR (KITTI layout) -> configs/city_slam.yaml, depth images -> configs/room_slam.yaml
-    config = room_slam_config_path()
-    if detect_kind(data) == "kitti":
-        config = os.path.join(os.path.dirname(config), "city_slam.yaml")
-    base = [f"data.path={data}", f"output={os.path.join(out, 'slam')}"] + list(args.overrides)
-    if args.frames:
-        base.append(f"data.end_frame={args.frames}")
-    cfg = load_config(config, base, schema=SlamConfig)
+    config = shipped_config_path("city_slam.yaml" if detect_kind(data) == "kitti" else "room_slam.yaml")
+    cfg = load_config(config, base_overrides(args, data, os.path.join(out, "slam")), schema=SlamConfig)
     slam = run_slam(cfg, cfg.output)
     icfg = cfg.imt()
     seq = open_run_sequence(icfg)

@@ -11,16 +11,13 @@ kept as a keyframe (`KeyframeStore`) so that a later pose change can move it.
 """
 from __future__ import annotations
 
-import json
 import os
-import shutil
 import time
 
 import jax
 import numpy as np
 
 from jaxmap.config import ImtConfig, from_dict, to_dict
-from jaxmap.errors import DataError
 from jaxmap.geometry import validate_pose
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.meshing import mesh as mesh_map
@@ -112,35 +109,19 @@ class ImtMapper:
     # -- checkpoints (orbax) --
     def save(self, path: str) -> None:
         """Write the map, the keyframe store and the config to directory `path` (atomically)."""
-        from jaxmap.checkpoint import _checkpointer
+        from jaxmap.checkpoint import save_tree
 
-        path = os.path.abspath(path)
-        tmp = path + ".tmp"
-        if os.path.exists(tmp):
-            shutil.rmtree(tmp)
-        os.makedirs(tmp)
-        tree = {"map": jax.device_get(self.map), "store": self.store.to_arrays()}
-        _checkpointer().save(os.path.join(tmp, "state"), tree)
         meta = {"config": to_dict(self.cfg), "table_capacity": int(self.map.table.capacity),
                 "keyframes": len(self.store), "timings": self.timings, "remaps": self.remaps}
-        with open(os.path.join(tmp, "meta.json"), "w") as f:
-            json.dump(meta, f)
-        if os.path.exists(path):
-            shutil.rmtree(path)
-        os.replace(tmp, path)
+        save_tree(path, {"map": self.map, "store": self.store.to_arrays()}, meta)
 
     @classmethod
     def load(cls, path: str, prior=None) -> "ImtMapper":
-        from jaxmap.checkpoint import _checkpointer
+        from jaxmap.checkpoint import _checkpointer, read_meta
         from jaxmap.grid.hashing import HashTable
 
-        path = os.path.abspath(path)
-        meta_path = os.path.join(path, "meta.json")
-        if not os.path.isfile(meta_path):
-            raise DataError(f"{path}: not a jaxmap imt checkpoint (no meta.json); pass RUN_DIR/checkpoint")
-        with open(meta_path) as f:
-            meta = json.load(f)
-        cfg = from_dict(ImtConfig, meta["config"], source=meta_path)
+        path, meta = read_meta(path, "jaxmap imt")
+        cfg = from_dict(ImtConfig, meta["config"], source=os.path.join(path, "meta.json"))
         m = cls(cfg, prior)
         tree = _checkpointer().restore(os.path.join(path, "state"))
         mp, t = tree["map"], tree["map"]["table"]

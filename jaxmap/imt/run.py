@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from jaxmap.config import ImtConfig, load_config, save_config
+from jaxmap.config import ImtConfig, config_from_args, save_config
 
 log = logging.getLogger("jaxmap")
 
@@ -96,22 +96,8 @@ def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool 
     return {"run": out_dir, **res, **timing["summary"], **timing["sizes"]}
 
 
-def room_config_path() -> str | None:
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "room_imt.yaml")
-    return os.path.normpath(path) if os.path.isfile(path) else None
-
-
-def config_from_args(args) -> ImtConfig:
-    overrides = list(args.overrides)
-    if getattr(args, "data", None):
-        overrides.append(f"data.path={args.data}")
-    if getattr(args, "out", None):
-        overrides.append(f"output={args.out}")
-    return load_config(args.config, overrides, schema=ImtConfig)
-
-
 def cli_imt(args) -> int:
-    cfg = config_from_args(args)
+    cfg = config_from_args(args, ImtConfig)
     summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress)
     print(json.dumps(summary))
     return 0

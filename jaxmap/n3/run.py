@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from jaxmap.config import ConfigError, MapConfig, load_config, save_config
+from jaxmap.config import ConfigError, MapConfig, config_from_args, load_config, save_config, shipped_config_path
 from jaxmap.errors import DataError
 
 log = logging.getLogger("jaxmap")
@@ -115,10 +115,8 @@ def finish_run(mapper, cfg: MapConfig, out_dir: str, seq, evaluate: bool = True)
 
 
 def city_config_path() -> str | None:
-    """configs/city.yaml of the source checkout (what `make demo` and `jaxmap bench` use), wherever the
-    command runs from; None for an installed package without it (the dataclass defaults then)."""
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "city.yaml")
-    return os.path.normpath(path) if os.path.isfile(path) else None
+    """configs/city.yaml of the source checkout, or None (see `config.shipped_config_path`)."""
+    return shipped_config_path("city.yaml")
 
 
 def _frame_selection(cfg: MapConfig) -> dict:
@@ -126,15 +124,6 @@ def _frame_selection(cfg: MapConfig) -> dict:
     return {"begin_frame": cfg.data.begin_frame, "end_frame": cfg.data.end_frame,
             "every_frame": cfg.data.every_frame, "min_range_m": cfg.preprocess.min_range_m,
             "max_range_m": cfg.preprocess.max_range_m}
-
-
-def _config_from_args(args) -> MapConfig:
-    overrides = list(args.overrides)
-    if getattr(args, "data", None):
-        overrides.append(f"data.path={args.data}")
-    if getattr(args, "out", None):
-        overrides.append(f"output={args.out}")
-    return load_config(args.config, overrides)
 
 
 def cli_map(args) -> int:
@@ -149,7 +138,7 @@ def cli_map(args) -> int:
     else:
         if not args.config:
             raise ConfigError("jaxmap map needs a CONFIG (e.g. configs/city.yaml) or --resume RUN_DIR")
-        cfg = _config_from_args(args)
+        cfg = config_from_args(args)
         out = cfg.output
     try:
         summary = map_sequence(cfg, out, resume=bool(args.resume), progress=not args.no_progress)

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig,
-                           PreprocessConfig, load_config, save_config)
+                           PreprocessConfig, config_from_args, load_config, save_config)
 from jaxmap.errors import DataError
 from jaxmap.slam.frontend import FrontEndConfig
 
@@ -219,22 +219,8 @@ def _jsonable(x):
     raise TypeError(type(x))
 
 
-def room_slam_config_path() -> str | None:
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", "room_slam.yaml")
-    return os.path.normpath(path) if os.path.isfile(path) else None
-
-
-def config_from_args(args) -> SlamConfig:
-    overrides = list(args.overrides)
-    if getattr(args, "data", None):
-        overrides.append(f"data.path={args.data}")
-    if getattr(args, "out", None):
-        overrides.append(f"output={args.out}")
-    return load_config(args.config, overrides, schema=SlamConfig)
-
-
 def cli_slam(args) -> int:
-    cfg = config_from_args(args)
+    cfg = config_from_args(args, SlamConfig)
     out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress)
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
     brief["loops"] = len(out["loops"])
