@@ -213,3 +213,71 @@ def test_cli_synth(tmp_path, capsys):
     stats = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert stats["frames"] == 2 and stats["seed"] == 5 and stats["scene"] == "room"
     assert len(open_sequence(tmp_path)) == 2
+
+
+# ------------------------------------------------------------------------------------------------
+# the long drive (a multi-block serpentine for long-drive memory benchmarks)
+# ------------------------------------------------------------------------------------------------
+
+
+def test_long_drive_route():
+    """The long preset's poses alone (no ray casting): >= 1 km, >= 1000 evenly spaced frames, smooth, on
+    the roads, and mostly new streets, so the area driven through grows about linearly with the frames."""
+    from jaxmap.synth.city import LONG, _blocks, long_drive
+
+    route, T, spacing = long_drive()
+    assert route.length >= 1000.0 and len(T) == LONG.frames >= 1000
+    assert 1.0 < spacing < 1.2 and spacing * (len(T) - 1) == pytest.approx(route.length)
+    for k in (0, 500, len(T) - 1):
+        validate_pose(T[k])
+    P = T[:, :3, 3]
+    assert np.allclose(P[:, 2], 1.73) and np.all(T[:, 2, 2] > 0.999)
+    # evenly spaced along the route (chords are a little shorter on the 5 m corner arcs), no jumps
+    steps = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    assert np.all(steps <= spacing + 1e-6) and np.all(steps > 0.99 * spacing)
+    yaw = np.arctan2(T[:, 1, 0], T[:, 0, 0])
+    assert np.abs((np.diff(yaw) + np.pi) % (2 * np.pi) - np.pi).max() < np.deg2rad(15)
+    motion = np.diff(P[:, :2], axis=0) / steps[:, None]
+    assert np.einsum("ij,ij->i", motion, T[:-1, :2, 0]).min() > 0.99  # the LiDAR's x axis looks ahead
+    # on the roads: inside the scene, within a street (never on a block, where the buildings stand)
+    xs, ys = LONG.street_lines()
+    to_centre = np.minimum(np.abs(P[:, :1] - np.array(xs)).min(1), np.abs(P[:, 1:2] - np.array(ys)).min(1))
+    assert to_centre.max() < LONG.road_width / 2 - 1.0
+    assert np.all(np.abs(P[:, 0]) < LONG.half_extent - 20) and np.all(np.abs(P[:, 1]) < LONG.half_extent_y - 20)
+    for x0, x1, y0, y1, _, _ in _blocks(LONG):
+        assert not np.any((P[:, 0] > x0 - 1) & (P[:, 0] < x1 + 1) & (P[:, 1] > y0 - 1) & (P[:, 1] < y1 + 1))
+    # new ground all along: distinct 20 m cells visited double from frame 500 to frame 1000
+    cells = lambda n: len(np.unique(np.floor(P[:n + 1, :2] / 20.0), axis=0))  # noqa: E731
+    assert cells(1000) > 1.5 * cells(500) and cells(500) > 1.5 * cells(250)
+    # fewer frames: the start of the same drive; more: the whole route, closer together
+    _, T5, sp5 = long_drive(5)
+    assert sp5 == spacing and np.array_equal(T5, T[:5])
+    _, T2, sp2 = long_drive(2 * LONG.frames)
+    assert sp2 < spacing and np.allclose(T2[-1], T[-1]) and np.allclose(T2[0], T[0])
+
+
+def test_long_city_end_to_end(tmp_path):
+    """A few frames of the long city: the whole 256 m x 200 m scene and its ground truth (~15 s)."""
+    from jaxmap.cli import main
+
+    assert main(["synth", "city", "--long", "--frames", "3", "--out", str(tmp_path), "--seed", "1"]) == 0
+    meta = json.loads((tmp_path / "meta.json").read_text())
+    assert meta["long"] is True and meta["frames"] == 3 and not meta["trajectory"]["closed_loop"]
+    assert meta["trajectory"]["route_length_m"] >= 1000 and 1.0 < meta["trajectory"]["frame_spacing_m"] < 1.2
+    assert meta["sensor"]["beams"] == 64 and meta["sensor"]["azimuth_steps"] == 1024
+    ext = np.array(meta["extent"]["max"]) - np.array(meta["extent"]["min"])
+    assert ext[0] > 250 and ext[1] > 195
+    for k in ("building", "trunk", "crown", "car", "fence", "railing", "pole", "sign"):
+        assert meta["objects"].get(k, 0) > 0, k
+    assert min(meta["objects"][k] for k in ("building", "trunk", "car")) > 150  # ~5x the default's
+    # the GT keeps the default density: ~100 samples per m^2 of visible surface
+    area = meta["gt"]["surface_area_m2"]
+    assert meta["gt"]["density_per_m2"] == 100.0 and 0.6 * area * 100 < meta["gt"]["points"] <= 1.01 * area * 100
+    seq = open_sequence(tmp_path)
+    assert len(seq) == 3 and min(len(f.points) for f in seq) > 30_000
+    sub = world_points(seq)[::50]
+    assert gt_distance(tmp_path, sub, refine_above=1e-4).max() < 1e-3  # scans lie on the GT mesh
+    with pytest.raises(SystemExit, match="city"):
+        main(["synth", "room", "--long", "--out", str(tmp_path / "r")])
+    with pytest.raises(ValueError, match="small"):
+        generate_city(tmp_path / "x", small=True, long=True)

@@ -4,10 +4,14 @@ The scene (world frame: z up, road surface at z = 0) is a grid of streets around
 curb; blocks hold buildings (flat box facades, rounded and cylindrical facades), a park lot behind a
 fence of thin slats and one behind a thin railing; sidewalks hold trees (trunk + ellipsoid crown),
 poles and traffic signs (thin plates); cars are parked along the curbs. Optional pedestrians (boxes)
-walk around the central block and are NOT part of the ground truth.
+walk around the central block (long: the first block on the drive's left) and are NOT part of the
+ground truth.
 
 A vehicle drives one closed loop around the central block (right lane, counter-clockwise) with a
-LiDAR at 1.73 m. Written in the KITTI odometry layout, with the SHINE/N3 pose convention:
+LiDAR at 1.73 m. With long=True the city is a larger grid (6 N-S x 5 E-W streets, 256 m x 200 m) and the
+vehicle drives a ~1.1 km serpentine through it instead (right lane, every E-W street once, joined at
+alternate ends; not closed), ~1.1 m per frame, so the area seen grows about linearly with the frames
+(long-drive memory benchmarks). Written in the KITTI odometry layout, with the SHINE/N3 pose convention:
 
     velodyne/000000.bin ...  float32 x,y,z,intensity in the LiDAR frame (x forward, y left, z up)
     calib.txt                "Tr:" = T_cam_velo (KITTI's typical velo->cam matrix, orthonormalised)
@@ -67,6 +71,16 @@ class CityPreset:
     tree_from_curb: float
     ped_from_curb: float
     pedestrians: int
+    # Larger grids (the long preset); the defaults keep the 3 x 3-block layout of the loop presets.
+    streets_x: tuple = ()   # N-S street centre lines (x, increasing); () = (-street_x, street_x)
+    streets_y: tuple = ()   # E-W street centre lines (y, increasing); () = (-street_y, street_y)
+    half_extent_y: float = 0.0  # scene spans [-half_extent, half_extent] x [-half_extent_y, ...]; 0 = square
+    parks: tuple = ()       # (i, j) block indices (x-major, from -x/-y) holding the park lots; () = central
+
+    def street_lines(self):
+        """(x centre lines of the N-S streets, y centre lines of the E-W streets), increasing."""
+        return (tuple(self.streets_x) or (-self.street_x, self.street_x),
+                tuple(self.streets_y) or (-self.street_y, self.street_y))
 
 
 DEFAULT = CityPreset(half_extent=50.0, street_x=20.0, street_y=14.0, road_width=8.0, sidewalk=4.0,
@@ -75,6 +89,15 @@ DEFAULT = CityPreset(half_extent=50.0, street_x=20.0, street_y=14.0, road_width=
 SMALL = CityPreset(half_extent=20.0, street_x=10.0, street_y=8.0, road_width=7.0, sidewalk=2.0,
                    lane_offset=0.5, corner_radius=3.0, frames=15, beams=32, azimuth_steps=512,
                    gt_density=40.0, tree_from_curb=0.9, ped_from_curb=1.5, pedestrians=4)
+# The long drive: the DEFAULT's streets, sidewalks and sensor on a 7 x 6-block grid (N-S streets 40 m apart,
+# E-W streets 36 m apart, outer blocks 24 m deep); the route (`long_route`) is ~1127 m and `frames` puts
+# the frames ~1.1 m apart (street_x / street_y, the loop presets' streets, are unused). Parks in a few
+# scattered blocks, so fences and railings keep showing up along the drive.
+LONG = CityPreset(half_extent=128.0, street_x=0.0, street_y=0.0, road_width=8.0, sidewalk=4.0,
+                  lane_offset=0.5, corner_radius=5.0, frames=1025, beams=64, azimuth_steps=1024,
+                  gt_density=100.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8,
+                  streets_x=(-100.0, -60.0, -20.0, 20.0, 60.0, 100.0), streets_y=(-72.0, -36.0, 0.0, 36.0, 72.0),
+                  half_extent_y=100.0, parks=((1, 1), (4, 1), (2, 3), (5, 2), (3, 4)))
 
 CURB_H = 0.15            # sidewalk / block height above the road
 SENSOR_H = 1.73          # LiDAR height above the road (KITTI)
@@ -128,11 +151,107 @@ class LoopPath:
         return np.array([self.at(i * self.length / n)[:2] for i in range(n)])
 
 
+class RoutePath:
+    """An open drive through the street grid, parametrised by arc length like LoopPath.
+
+    waypoints: [n,2] intersection centres (world x, y) visited in order, consecutive legs axis-aligned and
+    each turn 90 degrees. The vehicle keeps `lane_offset` right of the street centre line (right lane) and
+    turns on a quarter circle of radius r tangent to both lanes (left and right turns alike). Starts at
+    the first waypoint's lane point heading along the first leg, ends at the last one's."""
+
+    def __init__(self, waypoints, lane_offset: float, r: float):
+        W = np.asarray(waypoints, dtype=np.float64)
+        d = np.diff(W, axis=0)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        right = np.stack([d[:, 1], -d[:, 0]], 1)
+        self.waypoints, self.r = W, r
+        # corners: (tangent point in, tangent point out, arc centre, start angle, +1 left / -1 right)
+        corners = []
+        for k in range(1, len(W) - 1):
+            turn = d[k - 1, 0] * d[k, 1] - d[k - 1, 1] * d[k, 0]
+            if abs(abs(turn) - 1.0) > 1e-9:
+                raise ValueError("route legs must meet at right angles")
+            q = W[k] + lane_offset * (right[k - 1] + right[k])  # where the two lane lines cross
+            t_in, t_out = q - r * d[k - 1], q + r * d[k]
+            c = t_in - turn * r * right[k - 1]  # the centre lies on the inside of the turn
+            a0 = float(np.arctan2(*(t_in - c)[::-1]))
+            corners.append((t_in, t_out, c, a0, float(np.sign(turn))))
+        start = W[0] + lane_offset * right[0]
+        end = W[-1] + lane_offset * right[-1]
+        # segments: ("line", length, (p0, yaw)) or ("arc", length, (centre, a0, sign))
+        self.segs = []
+        p = start
+        for k, (t_in, t_out, c, a0, sign) in enumerate(corners):
+            self.segs.append(("line", float(np.linalg.norm(t_in - p)), (p, float(np.arctan2(d[k, 1], d[k, 0])))))
+            self.segs.append(("arc", np.pi * r / 2, (c, a0, sign)))
+            p = t_out
+        self.segs.append(("line", float(np.linalg.norm(end - p)), (p, float(np.arctan2(d[-1, 1], d[-1, 0])))))
+        if any(s[0] == "line" and s[1] < 0 for s in self.segs):
+            raise ValueError("route legs shorter than the corner radius")
+        self.length = float(sum(s[1] for s in self.segs))
+
+    def at(self, s: float):
+        """(x, y, yaw) at arc length s, clamped to [0, length]."""
+        s = min(max(float(s), 0.0), self.length)
+        for kind, length, data in self.segs:
+            if s <= length + 1e-12:
+                if kind == "line":
+                    p0, yaw = data
+                    return p0[0] + s * np.cos(yaw), p0[1] + s * np.sin(yaw), yaw
+                c, a0, sign = data
+                a = a0 + sign * s / self.r
+                return c[0] + self.r * np.cos(a), c[1] + self.r * np.sin(a), a + sign * np.pi / 2
+            s -= length
+        kind, length, data = self.segs[-1]  # s within 1e-12 past the end (rounding)
+        p0, yaw = data
+        return p0[0] + length * np.cos(yaw), p0[1] + length * np.sin(yaw), yaw
+
+    def samples(self, step: float = 0.25) -> np.ndarray:
+        """[n+1,2] points every ~step metres from start to end."""
+        n = int(np.ceil(self.length / step))
+        return np.array([self.at(i * self.length / n)[:2] for i in range(n + 1)])
+
+
+def _snake_waypoints(P: CityPreset) -> np.ndarray:
+    """Intersections of a serpentine over the grid [n,2]: every E-W street once, from the southmost up,
+    alternately eastward and westward, joined by one block of the outermost N-S street at alternate
+    ends (so apart from crossing intersections the drive never repeats a street)."""
+    xs, ys = P.street_lines()
+    pts = []
+    for j, y in enumerate(ys):
+        a, b = (xs[0], xs[-1]) if j % 2 == 0 else (xs[-1], xs[0])
+        pts += [(a, y), (b, y)]
+    return np.array(pts)
+
+
+def long_route(P: CityPreset | None = None) -> RoutePath:
+    """The long preset's drive (a RoutePath over `_snake_waypoints`), ~1127 m."""
+    P = P or LONG
+    return RoutePath(_snake_waypoints(P), P.lane_offset, P.corner_radius)
+
+
+def long_drive(n_frames: int | None = None, P: CityPreset | None = None):
+    """Frames of the long drive without building the city: (route, T_world_lidar [n,4,4], spacing (m)).
+
+    The preset's `frames` span the whole route (spacing = length / (frames - 1), ~1.1 m). Fewer frames
+    keep that spacing and stop early (the first n frames of the same drive), more are spread over the
+    whole route at a smaller spacing."""
+    P = P or LONG
+    route = long_route(P)
+    n_frames = int(n_frames or P.frames)
+    spacing = route.length / (max(n_frames, P.frames) - 1)
+    return route, _poses_at(route, [i * spacing for i in range(n_frames)]), spacing
+
+
 def lidar_poses(path: LoopPath, n_frames: int) -> np.ndarray:
     """[n,4,4] T_world_lidar evenly spaced over one loop (frame n would coincide with frame 0)."""
+    return _poses_at(path, [i * path.length / n_frames for i in range(n_frames)])
+
+
+def _poses_at(path, arclengths) -> np.ndarray:
+    """[n,4,4] T_world_lidar at the given arc lengths (m) of a LoopPath / RoutePath."""
     poses = []
-    for i in range(n_frames):
-        s = i * path.length / n_frames
+    for s in arclengths:
         x, y, yaw = path.at(s)
         pitch = 0.005 * np.sin(2 * np.pi * s / 23.0)  # a gently rocking vehicle (radians)
         roll = 0.004 * np.sin(2 * np.pi * s / 17.0)
@@ -207,6 +326,7 @@ def _inside_convex(poly: np.ndarray, z0: float, z1: float, eps: float = 1e-6):
             ok &= e[0] * (q[:, 1] - ai[1]) - e[1] * (q[:, 0] - ai[0]) > eps
         m[idx] = ok
         return m
+    inside.x_range = (lo[0], hi[0])  # no point outside it is inside (lets _gt_points skip the rest)
     return inside
 
 
@@ -216,23 +336,28 @@ def _inside_ellipsoid(center, radii, shrink: float = 0.98):
 
     def inside(p):
         return (((p - c) / r) ** 2).sum(1) < 1.0
+    inside.x_range = (c[0] - r[0], c[0] + r[0])
     return inside
 
 
 def _intervals(P: CityPreset):
-    h, w = P.half_extent, P.road_width / 2
-    xb = [-h, -P.street_x - w, -P.street_x + w, P.street_x - w, P.street_x + w, h]
-    yb = [-h, -P.street_y - w, -P.street_y + w, P.street_y - w, P.street_y + w, h]
+    """Cell bounds along x and y: [-h, s0 - w, s0 + w, s1 - w, ..., h]; even cells are blocks, odd ones roads."""
+    w = P.road_width / 2
+    xs, ys = P.street_lines()
+    hx, hy = P.half_extent, P.half_extent_y or P.half_extent
+    xb = [-hx] + [b for s in xs for b in (s - w, s + w)] + [hx]
+    yb = [-hy] + [b for s in ys for b in (s - w, s + w)] + [hy]
     return xb, yb
 
 
 def _ground(P: CityPreset):
     """Road cells at z = 0, block cells raised to CURB_H, vertical curb faces between them."""
     xb, yb = _intervals(P)
+    ncx, ncy = len(xb) - 1, len(yb) - 1  # cells
     hgt = lambda i, j: CURB_H if (i % 2 == 0 and j % 2 == 0) else 0.0  # noqa: E731
     mb = C.MeshBuilder()
-    for i in range(5):
-        for j in range(5):
+    for i in range(ncx):
+        for j in range(ncy):
             # tiles of <= 2 m keep triangles well shaped (float32 closest-point queries stay accurate)
             xs = np.linspace(xb[i], xb[i + 1], int(np.ceil((xb[i + 1] - xb[i]) / TILE)) + 1)
             ys = np.linspace(yb[j], yb[j + 1], int(np.ceil((yb[j + 1] - yb[j]) / TILE)) + 1)
@@ -242,8 +367,8 @@ def _ground(P: CityPreset):
             a = (np.arange(nx - 1)[:, None] * ny + np.arange(ny - 1)[None, :]).ravel()
             f = np.concatenate([np.stack([a, a + ny, a + ny + 1], 1), np.stack([a, a + ny + 1, a + 1], 1)])
             mb.add((v, f))
-    for i in range(5):
-        for j in range(5):
+    for i in range(ncx):
+        for j in range(ncy):
             if hgt(i, j) == 0.0:
                 continue
             # curb faces of this block towards lower neighbours (outward normals)
@@ -251,11 +376,11 @@ def _ground(P: CityPreset):
             sides = []
             if i > 0:
                 sides.append(((x0, y1), (x0, y0)))
-            if i < 4:
+            if i < ncx - 1:
                 sides.append(((x1, y0), (x1, y1)))
             if j > 0:
                 sides.append(((x0, y0), (x1, y0)))
-            if j < 4:
+            if j < ncy - 1:
                 sides.append(((x1, y1), (x0, y1)))
             for (ax, ay), (bx, by) in sides:
                 n = int(np.ceil(np.hypot(bx - ax, by - ay) / TILE))
@@ -268,21 +393,26 @@ def _ground(P: CityPreset):
 
 
 def _blocks(P: CityPreset):
-    """Blocks as (x0, x1, y0, y1, street sides {'-x','+x','-y','+y'}, is_central)."""
+    """Blocks as (x0, x1, y0, y1, street sides {'-x','+x','-y','+y'}, has_parks), x-major order.
+
+    has_parks: the block is in P.parks (default: the central block): its lots include park lots and it
+    holds at least two lots along its long side."""
     xb, yb = _intervals(P)
+    nx, ny = len(xb) - 1, len(yb) - 1
+    parks = set(P.parks) or {(((nx + 1) // 2 - 1) // 2, ((ny + 1) // 2 - 1) // 2)}  # the central block
     out = []
-    for i in (0, 2, 4):
-        for j in (0, 2, 4):
+    for i in range(0, nx, 2):
+        for j in range(0, ny, 2):
             sides = set()
             if i > 0:
                 sides.add("-x")
-            if i < 4:
+            if i < nx - 1:
                 sides.add("+x")
             if j > 0:
                 sides.add("-y")
-            if j < 4:
+            if j < ny - 1:
                 sides.add("+y")
-            out.append((xb[i], xb[i + 1], yb[j], yb[j + 1], sides, i == 2 and j == 2))
+            out.append((xb[i], xb[i + 1], yb[j], yb[j + 1], sides, (i // 2, j // 2) in parks))
     return out
 
 
@@ -337,8 +467,10 @@ def _car(xy, yaw, rng):
     return C.extrude_profile(prof, W, (xy[0], xy[1], 0.0), yaw), L, W
 
 
-def build_city(P: CityPreset, seed: int, path: LoopPath):
-    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], _Scene)."""
+def build_city(P: CityPreset, seed: int, path):
+    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], _Scene).
+
+    path: the LoopPath / RoutePath driven; parked cars on it are left out."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, 101]))
     scene = _Scene()
     gid = scene.add(_ground(P), "ground")
@@ -350,7 +482,7 @@ def build_city(P: CityPreset, seed: int, path: LoopPath):
         lo, hi = poly.min(0) - margin, poly.max(0) + margin
         return not np.any(np.all((traj >= lo) & (traj <= hi), axis=1))
 
-    for (x0, x1, y0, y1, sides, central) in _blocks(P):
+    for (x0, x1, y0, y1, sides, central) in _blocks(P):  # central: a block with park lots
         # ---- lots and buildings
         ix0 = x0 + (S if "-x" in sides else 0.5)
         ix1 = x1 - (S if "+x" in sides else 0.5)
@@ -484,11 +616,16 @@ def _park(scene: _Scene, lot, row: int, n_rows: int, rng, along_x: bool):
 # ------------------------------------------------------------------------------------------------
 
 
-def _pedestrian_boxes(P: CityPreset, seed: int, n_frames: int, step: float):
-    """Per frame a list of (center_xy, yaw) for P.pedestrians boxes walking around the central block."""
-    xb, yb = _intervals(P)
+def _pedestrian_boxes(P: CityPreset, seed: int, n_frames: int, step: float, block=None):
+    """Per frame a list of (center_xy, yaw) for P.pedestrians boxes walking around a block's sidewalk:
+    `block` (x0, x1, y0, y1), default the central block (centred on the origin)."""
     d = P.ped_from_curb
-    hx, hy = xb[3] - d, yb[3] - d
+    if block is None:
+        xb, yb = _intervals(P)
+        hx, hy = xb[3] - d, yb[3] - d
+    else:
+        x0, x1, y0, y1 = block
+        hx, hy = (x1 - x0) / 2 - d, (y1 - y0) / 2 - d
     square = LoopPath(hx, hy, 1e-3)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 202]))
     n = P.pedestrians
@@ -499,6 +636,8 @@ def _pedestrian_boxes(P: CityPreset, seed: int, n_frames: int, step: float):
         peds = []
         for k in range(n):
             x, y, yaw = square.at(s0[k] + sign[k] * step * i)
+            if block is not None:  # (only here: adding 0.0 would turn a -0.0 of the default into 0.0)
+                x, y = x + (x0 + x1) / 2, y + (y0 + y1) / 2
             peds.append(((x, y), yaw + (0.0 if sign[k] > 0 else np.pi)))
         frames.append(peds)
     return frames
@@ -518,19 +657,26 @@ def _pedestrian_mesh(peds):
 
 def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
                   noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
-                  pedestrians: bool = False) -> dict:
+                  pedestrians: bool = False, long: bool = False) -> dict:
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
     small: 40 m x 40 m scene, 15 frames, 32 x 512 beams (seconds); default 100 m x 100 m, 130 frames
            ~1 m apart, 64 x 1024 beams.
-    n_frames: frames evenly spaced over the one closed loop (default per preset).
+    long: 256 m x 200 m city, a 1127 m serpentine drive (not closed), 1025 frames 1.1 m apart, the
+          default's 64 x 1024 beams and GT density (~35 s on 2 cores, 1.5 GB of RAM; 1.4 GB on disk:
+          1 GB of scans, 16M GT points; see `long_drive`).
+    n_frames: frames evenly spaced over the one closed loop (default per preset); with long, the first
+              n_frames of the drive at the preset's 1.1 m (spread over the whole route if more).
     noise_m: std of Gaussian range noise (m).  beams / azimuth_steps: override the LiDAR resolution.
-    pedestrians: add boxes walking around the central block (in the scans, not in the ground truth).
+    pedestrians: add boxes walking around the central block (long: around the first block on the left
+                 of the drive) (in the scans, not in the ground truth).
     Returns the stats written to meta.json, plus "elapsed_s" (not written, so files stay deterministic).
     """
     t_start = time.perf_counter()
-    P = SMALL if small else DEFAULT
+    if small and long:
+        raise ValueError("small and long are different presets; pick one")
+    P = LONG if long else SMALL if small else DEFAULT
     n_frames = int(n_frames or P.frames)
     beams = int(beams or P.beams)
     azimuth_steps = int(azimuth_steps or P.azimuth_steps)
@@ -539,17 +685,25 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     out_dir = os.fspath(out_dir)
     scan_dir = C.prepare_out_dir(out_dir, "velodyne", ".bin")
 
-    off = P.lane_offset
-    path = LoopPath(P.street_x + off, P.street_y + off, P.corner_radius)
+    ped_block = None
+    if long:
+        # the city depends on the whole route, never on n_frames: a short run sees the same scene
+        path, T_wl, spacing = long_drive(n_frames, P)
+        xb, yb = _intervals(P)
+        ped_block = (xb[2], xb[3], yb[2], yb[3])  # left of the first leg, passed again on the second run
+    else:
+        off = P.lane_offset
+        path = LoopPath(P.street_x + off, P.street_y + off, P.corner_radius)
     V, F, obj, scene = build_city(P, seed, path)
-    T_wl = lidar_poses(path, n_frames)
+    if not long:
+        T_wl = lidar_poses(path, n_frames)
+        spacing = path.length / n_frames
     Tr = kitti_tr()
 
     # ---- scans
     caster = C.Raycaster(V, F)
     dirs_s = beam_directions(beams, azimuth_steps)
-    spacing = path.length / n_frames
-    peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing) if pedestrians else None
+    peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing, ped_block) if pedestrians else None
     counts = []
     for i in range(n_frames):
         R, o = T_wl[i, :3, :3], T_wl[i, :3, 3]
@@ -569,6 +723,8 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         inten = np.abs(np.einsum("ij,ij->i", nrm[valid].astype(np.float64), dirs_w[valid]))
         write_scan_bin(os.path.join(scan_dir, f"{i:06d}.bin"), pts, np.clip(inten, 0.0, 1.0))
         counts.append(len(pts))
+        if long and (i + 1) % 100 == 0:
+            log.info("synth city: %d/%d frames (%.0f s)", i + 1, n_frames, time.perf_counter() - t_start)
     write_calib(os.path.join(out_dir, "calib.txt"), Tr)
     write_poses(os.path.join(out_dir, "poses.txt"), camera_poses_from_lidar(T_wl, Tr))
     ped_file = os.path.join(out_dir, "pedestrians.json")
@@ -582,7 +738,8 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
 
     # ---- ground truth
     write_mesh_ply(os.path.join(out_dir, "gt_mesh.ply"), V, F)
-    gt_pts, gt_nrm = _gt_points(V, F, obj, scene, P.gt_density, seed)
+    # the long city has ~6x the default's surface: sample it in pieces to bound the peak memory
+    gt_pts, gt_nrm = _gt_points(V, F, obj, scene, P.gt_density, seed, chunk=2_000_000 if long else None)
     write_points_ply(os.path.join(out_dir, "gt_points.ply"), gt_pts, gt_nrm)
 
     kinds = {}
@@ -595,13 +752,18 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         "sensor": {"type": "lidar", "beams": beams, "azimuth_steps": azimuth_steps,
                    "elevation_deg": list(ELEVATION_DEG), "max_range_m": MAX_RANGE, "height_m": SENSOR_H,
                    "noise_m": float(noise_m)},
-        "trajectory": {"loop_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
-                       "closed_loop": True},
+        "trajectory": ({"route_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
+                        "driven_length_m": round(spacing * (n_frames - 1), 3), "closed_loop": False,
+                        "waypoints": C.rounded(_snake_waypoints(P), 3)} if long else
+                       {"loop_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
+                        "closed_loop": True}),
         "calib_Tr": C.rounded(Tr[:3].reshape(-1), 12),
         "objects": kinds, "pedestrians": (P.pedestrians if pedestrians else 0),
         "gt": {"mesh_triangles": int(len(F)), "points": int(len(gt_pts)),
                "density_per_m2": P.gt_density, "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 2)},
     }
+    if long:  # (only here, so the other presets' meta.json stay as they were)
+        meta["long"] = True
     C.write_json(os.path.join(out_dir, "meta.json"), meta)
     elapsed = time.perf_counter() - t_start
     log.info("synth city: %d frames, %.0f points/frame, %d GT points -> %s (%.1f s)", n_frames,
@@ -609,12 +771,50 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     return dict(meta, elapsed_s=round(elapsed, 2), out_dir=out_dir)
 
 
-def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int):
-    """Uniform samples of the static mesh with hidden samples (inside other solids) removed."""
-    pts, nrm, fid = C.sample_surface(V, F, density, seed=seed * 7919 + 11, return_faces=True)
+def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int, chunk: int | None = None):
+    """Uniform samples of the static mesh with hidden samples (inside other solids) removed:
+    (points [N,3] float32, normals [N,3] float32), world frame.
+
+    chunk: None samples all faces in one go (the loop presets' files); else runs of consecutive faces
+    holding ~chunk expected samples each, with their own seeds (same density, bounded memory).
+    """
+    if chunk is None:
+        return _visible_samples(V, F, obj, scene, density, seed * 7919 + 11)
+    expected = np.cumsum(C.mesh_area(V, F) * density)
+    cuts = np.searchsorted(expected, np.arange(chunk, expected[-1], chunk))
+    bounds = np.unique(np.r_[0, cuts, len(F)])
+    pts, nrm = [], []
+    for k, (f0, f1) in enumerate(zip(bounds[:-1], bounds[1:])):
+        sub_seed = int(np.random.SeedSequence([seed, 404, k]).generate_state(1)[0])
+        p, n = _visible_samples(V, F[f0:f1], obj[f0:f1], scene, density, sub_seed)
+        pts.append(p)
+        nrm.append(n)
+    return np.concatenate(pts), np.concatenate(nrm)
+
+
+def _visible_samples(V, F, obj, scene: _Scene, density: float, seed: int):
+    """Samples of faces F [n,3] (object ids obj [n], non-decreasing) that pass the hidden-tests of their
+    objects: (points [N,3] float32, normals [N,3] float32)."""
+    pts, nrm, fid = C.sample_surface(V, F, density, seed=seed, return_faces=True)
+    # faces are grouped by object (in _Scene order) and samples by face: each object's samples are one run
     sample_obj = obj[fid]
     keep = np.ones(len(pts), bool)
-    for oid, inside in scene.hidden:
-        sel = np.flatnonzero(sample_obj == oid)
+    by_x = {}  # object id -> (order of its samples by x, their sorted x)
+    oids = np.array([oid for oid, _ in scene.hidden], dtype=sample_obj.dtype)  # (same dtype: no array copies)
+    runs = zip(np.searchsorted(sample_obj, oids, "left"), np.searchsorted(sample_obj, oids, "right"))
+    for (oid, inside), (a, b) in zip(scene.hidden, runs):
+        if a == b:
+            continue
+        x_range = getattr(inside, "x_range", None)
+        if x_range is not None and b - a > 10_000:
+            # a large object (the ground, tested under every building): test only its samples within the
+            # solid's x range (the same result; the long city has ~220 buildings over ~5M ground samples)
+            if oid not in by_x:
+                order = np.argsort(pts[a:b, 0], kind="stable")
+                by_x[oid] = (order, pts[a:b, 0][order])
+            order, xs = by_x[oid]
+            sel = a + order[np.searchsorted(xs, x_range[0], "left"):np.searchsorted(xs, x_range[1], "right")]
+        else:
+            sel = np.arange(a, b)
         keep[sel[inside(pts[sel])]] = False
     return pts[keep].astype(np.float32), nrm[keep]
