@@ -33,8 +33,10 @@ class ConfigError(JaxmapError, ValueError):
 
 @dataclass(frozen=True)
 class DataConfig:
-    path: str = "data/city"          # sequence directory (KITTI layout or depth layout)
-    kind: str = "auto"               # "auto", "kitti" (LiDAR scans) or "depth" (depth images)
+    path: str = "data/city"          # sequence directory or file (KITTI, depth, ROS bag, TUM RGB-D, Replica, LAS/LAZ)
+    kind: str = "auto"               # "auto", "kitti" (LiDAR scans), "depth" (depth images), "rosbag" (.bag/.mcap/.db3
+                                     # or ROS 2 bag directory), "tum" (TUM RGB-D), "replica" or "las" (LAS/LAZ)
+    topic: str = ""                  # ROS bag: the sensor_msgs/PointCloud2 topic to map ("" = the bag's only one)
     begin_frame: int = 0             # first frame to map (index into the sequence)
     end_frame: int = -1              # exclusive; -1 = to the end
     every_frame: int = 1             # map every n-th frame (1 = all)

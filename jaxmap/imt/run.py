@@ -27,7 +27,7 @@ def open_run_sequence(cfg: ImtConfig):
 
     d = cfg.data
     return open_sequence(d.path, kind=d.kind, begin_frame=d.begin_frame, end_frame=d.end_frame,
-                         every_frame=d.every_frame)
+                         every_frame=d.every_frame, topic=d.topic)
 
 
 def build_map(cfg: ImtConfig, seq, poses=None, progress: bool = True, mapper=None, desc: str = "imt"):

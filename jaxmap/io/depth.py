@@ -25,8 +25,9 @@ from jaxmap.io.pointcloud import _makedirs_for, natural_key
 log = logging.getLogger("jaxmap")
 
 
-def read_intrinsics(path):
-    """Read intrinsics.txt -> (fx, fy, cx, cy, depth_scale) floats; depth_scale defaults to 1000."""
+def read_intrinsics(path, default_scale: float = 1000.0):
+    """Read intrinsics.txt -> (fx, fy, cx, cy, depth_scale) floats; without a 5th number depth_scale is
+    `default_scale` (1000 = millimetres; the TUM RGB-D reader passes 5000)."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise DataError(f"{path}: missing; a depth sequence needs intrinsics.txt with one line 'fx fy cx cy'")
@@ -43,7 +44,7 @@ def read_intrinsics(path):
         raise DataError(f"{path}: expected 4 numbers 'fx fy cx cy' (optionally a 5th: depth units per metre), "
                         f"found {len(vals)}")
     fx, fy, cx, cy = vals[:4]
-    scale = vals[4] if len(vals) == 5 else 1000.0
+    scale = vals[4] if len(vals) == 5 else float(default_scale)
     if not (fx > 0 and fy > 0 and scale > 0 and np.isfinite(vals).all()):
         raise DataError(f"{path}: fx, fy and the depth scale must be positive and finite, got {vals}")
     return fx, fy, cx, cy, scale

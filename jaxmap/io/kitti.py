@@ -32,23 +32,28 @@ _identity_logged: set[str] = set()
 class Frame:
     """One frame of a sequence.
 
-    index:  frame number in the sequence (position among all scans/images, before selection)
+    index:  frame number in the sequence (position among all scans/images, before selection; for ROS bags
+            and TUM RGB-D, among the clouds/images that got a pose)
     points: [N,3] float32 in the SENSOR frame, all finite (NaN/inf dropped on read)
     pose:   [4,4] float64 T_world_sensor (p_w = R p_s + t)
+    timestamp: sensor time in seconds (float64) where the format records one (ROS bags, TUM RGB-D),
+            else None (KITTI, depth, Replica, LAS layouts)
     """
     index: int
     points: np.ndarray
     pose: np.ndarray
+    timestamp: float | None = None
 
 
 class Sequence:
     """A selection of frames of a sequence directory (base of KittiSequence and DepthSequence).
 
     Attributes:
-      data_dir:  the directory (str)
-      kind:      "kitti" or "depth"
+      data_dir:  the directory (or file, for a ROS bag / single LAS file) (str)
+      kind:      "kitti", "depth", "rosbag", "tum", "replica" or "las"
       indices:   [M] int, frame numbers of the selected frames
       poses:     [M,4,4] float64 world <- sensor poses of the selected frames (read-only array)
+      timestamps: [M] float64 sensor times (s) of the selected frames, or None if the format has none
       gt_points_path, gt_mesh_path: data_dir/gt_points.ply and gt_mesh.ply, or None if absent
     `len(seq)` is M; iterating reads one frame at a time (lazy); `seq.frame(i)` is the i-th selected frame.
     """
@@ -56,7 +61,7 @@ class Sequence:
     kind = "base"
 
     def __init__(self, data_dir, n_total: int, poses_all: np.ndarray, begin_frame: int, end_frame: int,
-                 every_frame: int):
+                 every_frame: int, timestamps_all: np.ndarray | None = None):
         self.data_dir = os.fspath(data_dir)
         self.n_total = int(n_total)
         self.begin_frame, self.end_frame, self.every_frame = begin_frame, end_frame, every_frame
@@ -64,6 +69,11 @@ class Sequence:
         poses = np.ascontiguousarray(poses_all[self.indices], dtype=np.float64)
         poses.setflags(write=False)
         self.poses = poses
+        self.timestamps = None
+        if timestamps_all is not None:
+            ts = np.ascontiguousarray(np.asarray(timestamps_all, dtype=np.float64)[self.indices])
+            ts.setflags(write=False)
+            self.timestamps = ts
         gp = os.path.join(self.data_dir, "gt_points.ply")
         gm = os.path.join(self.data_dir, "gt_mesh.ply")
         self.gt_points_path = gp if os.path.isfile(gp) else None
@@ -83,7 +93,8 @@ class Sequence:
             raise IndexError(f"frame {i} out of range for a sequence of {n} selected frames")
         i = i % n
         idx = int(self.indices[i])
-        return Frame(index=idx, points=self._read_points(idx), pose=np.array(self.poses[i]))
+        stamp = None if self.timestamps is None else float(self.timestamps[i])
+        return Frame(index=idx, points=self._read_points(idx), pose=np.array(self.poses[i]), timestamp=stamp)
 
     def _read_points(self, index: int) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError

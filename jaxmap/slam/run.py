@@ -166,11 +166,13 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     mapper.save(os.path.join(out_dir, "checkpoint"))
     traj = np.asarray(res["trajectory"])
     write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
-    stamps = np.asarray([seq.frame(i).index for i in range(len(traj))], np.float64)
+    # sensor timestamps where the data has them (ROS bags, TUM RGB-D), else frame numbers
+    stamps = (np.asarray(seq.timestamps[:len(traj)], np.float64) if getattr(seq, "timestamps", None) is not None
+              else np.asarray(seq.indices[:len(traj)], np.float64))
     write_tum(os.path.join(out_dir, "trajectory_tum.txt"), stamps, traj)
     out = {"run": out_dir, "frames": len(seq), "keyframes": len(mapper.store), "loops": res["loops"],
            **summarize(mapper.timings), **mapper.sizes()}
-    gt = np.asarray([seq.frame(i).pose for i in range(len(traj))])
+    gt = np.asarray(seq.poses[:len(traj)], np.float64)  # = seq.frame(i).pose, without re-reading the points
     if evaluate:
         out["ate_slam"] = ate(traj, gt)
         if res["odometry"] is not None:
