@@ -11,12 +11,18 @@ PYTEST_ARGS ?=
 
 .PHONY: demo test install sysdeps clean
 
-# open3d's Linux wheel links against libusb-1.0; Debian/Ubuntu images often lack it.
+# open3d's Linux wheel links against libusb-1.0; Debian/Ubuntu images often lack it. chromium (headless):
+# tests/test_viewer.py loads the live viewer (viser, WebGL) in it and checks a screenshot.
 sysdeps:
 	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
 	  echo "[make] installing libusb-1.0-0 (needed by open3d)"; \
 	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
 	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	fi
+	@if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then \
+	  echo "[make] installing chromium (browser test of the viewer)"; \
+	  SUDO=$$( [ "$$(id -u)" = 0 ] || echo sudo ); \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; \
 	fi
 
 $(STAMP): pyproject.toml

@@ -6,7 +6,10 @@ Runs `jaxmap slam` (ICP odometry, loop verification, open3d pose graph, remappin
 at each loop), then builds the latent map of the same frames with the ground-truth poses and with
 the odometry-only poses, and prints side by side: the absolute trajectory error of odometry alone
 and of the optimised trajectory, the reconstruction metrics (5 cm threshold) of the three maps, and
-per loop the optimisation and remapping times. Everything is written to OUT/bench.json.
+per loop the optimisation and remapping times. Before that, the odometry alone of both methods
+(`frontend.odometry.method`: KISS-ICP and jaxmap's frame-to-frame ICP, same config otherwise) is run
+over the sequence and their ATE / RPE / time per frame printed side by side. `--only odometry` stops
+there; `--only slam` skips it. Everything is written to OUT/bench.json.
 """
 from __future__ import annotations
 
@@ -41,6 +44,19 @@ def main(args) -> int:
     # LiDAR (KITTI layout) -> configs/city_slam.yaml, depth images -> configs/room_slam.yaml
     config = shipped_config_path("city_slam.yaml" if detect_kind(data) == "kitti" else "room_slam.yaml")
     cfg = load_config(config, base_overrides(args, data, os.path.join(out, "slam")), schema=SlamConfig)
+    only = {v.strip() for v in args.only.split(",")} if getattr(args, "only", None) else {"odometry", "slam"}
+    unknown = only - {"odometry", "slam"}
+    if unknown:
+        raise SystemExit(f"jaxmap bench slam: --only takes odometry and/or slam, not {', '.join(sorted(unknown))}")
+    res_odo = None
+    if "odometry" in only:
+        res_odo = compare_odometry(cfg, open_run_sequence(cfg.imt()))
+        _print_odometry(res_odo)
+        if "slam" not in only:
+            with open(os.path.join(out, "bench.json"), "w") as f:
+                json.dump({"odometry": res_odo}, f, indent=1)
+            print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
+            return 0
     slam = run_slam(cfg, cfg.output)
     icfg = cfg.imt()
     seq = open_run_sequence(icfg)
@@ -54,11 +70,54 @@ def main(args) -> int:
            "recon": {"GT poses": m_gt.get("metrics", {}), "odometry poses": m_od.get("metrics", {}),
                      "slam (remapped)": slam.get("metrics", {})},
            "sizes": {k: slam[k] for k in ("map_bytes", "store_bytes", "keyframes")}}
+    if res_odo is not None:
+        res["odometry"] = res_odo
     _print(res)
     with open(os.path.join(out, "bench.json"), "w") as f:
         json.dump(res, f, indent=1, default=lambda x: x.tolist() if hasattr(x, "tolist") else str(x))
     print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
     return 0
+
+
+METHODS = {"kiss_icp": "KISS-ICP", "icp": "ICP (jaxmap)"}
+
+
+def compare_odometry(cfg, seq) -> dict:
+    """Odometry alone of each method over `seq` (from its first pose): ATE, RPE (1 frame), s/frame.
+    A method whose package is missing gets {"error": why}."""
+    import dataclasses
+
+    from jaxmap.errors import JaxmapError
+    from jaxmap.slam.kiss import odometry_trajectory
+    from jaxmap.slam.trajectory import ate, have_evo, rpe
+
+    gt = np.asarray(seq.poses, dtype=np.float64)
+    out = {}
+    for method in METHODS:
+        ocfg = dataclasses.replace(cfg.frontend.odometry, method=method)
+        try:
+            poses, s = odometry_trajectory(seq, ocfg, progress=True)
+        except (JaxmapError, ImportError) as e:
+            out[method] = {"error": str(e)}
+            continue
+        out[method] = {"ate": ate(poses, gt), "rpe": rpe(poses, gt) if len(gt) > 1 else None, "s_per_frame": s,
+                       "metrics_by": "evo" if have_evo() else "jaxmap"}
+    return out
+
+
+def _print_odometry(res: dict) -> None:
+    print(f"\nodometry alone ({next((r['metrics_by'] for r in res.values() if 'metrics_by' in r), '-')} metrics)")
+    print(f"{'method':14s} {'ATE RMSE cm':>11s} {'ATE max cm':>10s} {'ATE rot deg':>11s} {'RPE cm/frame':>12s} "
+          f"{'RPE deg':>8s} {'s/frame':>8s}")
+    print("-" * 80)
+    for method, r in res.items():
+        name = METHODS[method]
+        if "error" in r:
+            print(f"{name:14s} {r['error']}")
+            continue
+        a, p = r["ate"], r["rpe"] or {"rmse_m": float("nan"), "rot_rmse_deg": float("nan")}
+        print(f"{name:14s} {100 * a['rmse_m']:11.2f} {100 * a['max_m']:10.2f} {a['rot_rmse_deg']:11.3f} "
+              f"{100 * p['rmse_m']:12.2f} {p['rot_rmse_deg']:8.3f} {r['s_per_frame']:8.3f}")
 
 
 def slam_odometry(run_dir: str) -> np.ndarray:

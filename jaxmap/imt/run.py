@@ -6,6 +6,10 @@ A run directory holds:
   mesh.ply        marching-cubes mesh of the latent map (world frame)
   metrics.json    reconstruction metrics when the sequence has ground truth (threshold eval.threshold_m)
   timing.json     per-frame preprocess / encode / fuse times, medians, map and keyframe-store sizes
+
+With `--view` (`run_imt(..., view={"port": 8080, "mesh_every": 10})`) a live browser viewer
+(`jaxmap.viewer`) shows each frame's points, the trajectory and a mesh re-extracted in a background
+thread every `mesh_every` frames while the map is built.
 """
 from __future__ import annotations
 
@@ -30,8 +34,9 @@ def open_run_sequence(cfg: ImtConfig):
                          every_frame=d.every_frame, topic=d.topic)
 
 
-def build_map(cfg: ImtConfig, seq, poses=None, progress: bool = True, mapper=None, desc: str = "imt"):
-    """Fuse every frame of `seq` (with `poses` [n,4,4] instead of the sequence's, if given)."""
+def build_map(cfg: ImtConfig, seq, poses=None, progress: bool = True, mapper=None, desc: str = "imt", hooks=None):
+    """Fuse every frame of `seq` (with `poses` [n,4,4] instead of the sequence's, if given).
+    hooks: a `jaxmap.viewer.ViewerHooks` that is shown every frame (None = no viewer)."""
     from jaxmap.imt.mapper import ImtMapper
 
     mapper = mapper or ImtMapper(cfg)
@@ -42,7 +47,12 @@ def build_map(cfg: ImtConfig, seq, poses=None, progress: bool = True, mapper=Non
         bar = tqdm(total=len(seq), unit="frame", desc=desc, file=sys.stderr)
     for i in range(len(seq)):
         fr = seq.frame(i)
-        info = mapper.add_frame(fr.points, fr.pose if poses is None else poses[i], frame=fr.index)
+        pose = fr.pose if poses is None else poses[i]
+        info = mapper.add_frame(fr.points, pose, frame=fr.index)
+        if hooks is not None:
+            from jaxmap.viewer import to_world
+
+            hooks.on_frame(int(fr.index), to_world(fr.points, pose, hooks.viewer.max_points), pose, info)
         if bar is not None:
             bar.set_postfix(enc=f"{info['encode_s']:.2f}s", voxels=info["map_voxels"])
             bar.update(1)
@@ -79,13 +89,50 @@ def mesh_and_evaluate(mapper, cfg: ImtConfig, out_dir: str, name: str = "mesh.pl
     return out
 
 
-def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool = True) -> dict:
+def start_view(view: dict | None, mapper):
+    """ViewerHooks for `view` = {"port": int, "mesh_every": int} (None: no viewer), meshing `mapper` in the
+    background at half its mesh resolution (a preview; the final mesh is the full one)."""
+    if not view:
+        return None
+    from jaxmap.viewer import attach_viewer
+
+    res = max(2, (mapper.cfg.mesh.resolution // 2) // 2 * 2)   # the live mesh at half the lattice resolution
+    return attach_viewer(port=int(view.get("port", 8080)), mesh_every=int(view.get("mesh_every", 10)),
+                         mesh_fn=lambda: mapper.mesh(resolution=res))
+
+
+def finish_view(hooks, mesh_path: str | None, out_dir: str) -> None:
+    """Show the final mesh, then stop the viewer (`jaxmap view RUN` opens the run again)."""
+    if hooks is None:
+        return
+    mesh = None
+    if mesh_path and os.path.isfile(mesh_path):
+        import trimesh
+
+        mesh = trimesh.load(mesh_path, process=False, force="mesh")
+    hooks.finish(mesh)
+    hooks.close()
+    log.info("viewer closed; `jaxmap view %s` shows the finished run", out_dir)
+
+
+def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
+            view: dict | None = None) -> dict:
+    from jaxmap.imt.mapper import ImtMapper
+
     os.makedirs(out_dir, exist_ok=True)
     save_config(cfg, os.path.join(out_dir, "config.yaml"))
     seq = open_run_sequence(cfg)
-    mapper = build_map(cfg, seq, progress=progress)
-    mapper.save(os.path.join(out_dir, "checkpoint"))
-    res = mesh_and_evaluate(mapper, cfg, out_dir, evaluate=evaluate)
+    mapper = ImtMapper(cfg)
+    hooks = start_view(view, mapper)
+    try:
+        mapper = build_map(cfg, seq, progress=progress, mapper=mapper, hooks=hooks)
+        mapper.save(os.path.join(out_dir, "checkpoint"))
+        res = mesh_and_evaluate(mapper, cfg, out_dir, evaluate=evaluate)
+    except BaseException:
+        if hooks is not None:
+            hooks.close()
+        raise
+    finish_view(hooks, res.get("mesh"), out_dir)
     timing = {"frames": mapper.timings, "summary": summarize(mapper.timings), "sizes": mapper.sizes(),
               "mesh_s": res["mesh_s"]}
     with open(os.path.join(out_dir, "timing.json"), "w") as f:
@@ -96,8 +143,15 @@ def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool 
     return {"run": out_dir, **res, **timing["summary"], **timing["sizes"]}
 
 
+def view_options(args) -> dict | None:
+    """{"port", "mesh_every"} of the `--view --view-port --view-mesh-every` flags, None without --view."""
+    if not getattr(args, "view", False):
+        return None
+    return {"port": args.view_port, "mesh_every": args.view_mesh_every}
+
+
 def cli_imt(args) -> int:
     cfg = config_from_args(args, ImtConfig)
-    summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress)
+    summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     print(json.dumps(summary))
     return 0

@@ -1,7 +1,8 @@
 """Streaming SLAM front end: odometry, keyframes, loop closure and pose-graph optimisation.
 
 Per frame (`FrontEnd.add_frame(points_s)`):
-  1. frame-to-frame ICP odometry (`Odometry`) gives the current pose estimate;
+  1. odometry gives the current pose estimate: frame-to-frame ICP (`Odometry`) or KISS-ICP
+     (`jaxmap.slam.kiss.KissOdometry`), as `odometry.method` says;
   2. the frame becomes a keyframe when enough frames/motion passed since the last keyframe; a
      keyframe stores its downsampled points + normals (sensor frame) and gets a pose-graph node, linked
      to the previous keyframe by an odometry edge (the odometry motion between them, with the
@@ -23,7 +24,7 @@ import numpy as np
 
 from jaxmap.geometry import pose_change, se3_inverse
 from jaxmap.slam.loops import LoopConfig, LoopResult, find_candidates, verify
-from jaxmap.slam.odometry import Odometry, OdometryConfig, Scan
+from jaxmap.slam.odometry import OdometryConfig, Scan, make_odometry
 from jaxmap.slam.posegraph import PoseGraph
 
 log = logging.getLogger("jaxmap")
@@ -92,7 +93,7 @@ class FrontEnd:
 
     def __init__(self, cfg: FrontEndConfig | None = None, initial_pose: np.ndarray | None = None):
         self.cfg = cfg or FrontEndConfig()
-        self.odometry = Odometry(self.cfg.odometry, initial_pose)
+        self.odometry = make_odometry(self.cfg.odometry, initial_pose)   # ICP or KISS-ICP (odometry.method)
         self.graph = PoseGraph()
         self.kf_scans: list[Scan] = []          # per keyframe: prepared points/normals, sensor frame
         self.kf_frame: list[int] = []           # per keyframe: its frame index

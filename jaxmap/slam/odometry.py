@@ -102,7 +102,12 @@ class OdometryConfig:
     test). On the small city (4.7 m between scans, 2 cm noise): 8.5 cm ATE over the 70 m loop; 0.2 m
     voxels give 5 cm at twice the time; 0.2-0.5 m voxels are the sensible range for 32-64 beams.
 
-    voxel_m:        downsampling voxel (m) of the scans fed to ICP
+    method:         "icp": this module's frame-to-frame point-to-plane ICP (open3d), the default; "kiss_icp":
+                    KISS-ICP (Vizzo et al., RA-L 2023; `pip install kiss-icp`), point-to-point ICP against a
+                    voxel-hashed local map with an adaptive threshold (`jaxmap.slam.kiss`). Both give the
+                    same OdomStep; the scans kept for loop closure are prepared with the fields below either way
+    kiss_voxel_m:   kiss_icp only: voxel size of its local map (m); 0 = max_range_m / 100 as KISS-ICP does
+    voxel_m:        downsampling voxel (m) of the scans fed to ICP (and to the loop verification)
     max_corr_m:     ICP correspondence distance of the fine stage (m); about 2 voxels
     coarse_factor:  a first ICP stage runs with voxel and max_corr scaled by this (1 = single stage);  # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
                     it widens the basin of convergence when the motion prior is off
@@ -116,6 +121,8 @@ class OdometryConfig:
     min_points:     fewer downsampled points than this -> the frame is not registered
     min_range_m, max_range_m: range crop of the input scan (m)
     """
+    method: str = "icp"                 # "icp" (open3d point-to-plane, frame to frame) or "kiss_icp" (KISS-ICP, frame to local map)
+    kiss_voxel_m: float = 0.0           # kiss_icp: voxel (m) of its local map; 0 = max_range_m / 100 (KISS-ICP's default)
     voxel_m: float = 0.03               # downsampling voxel (m) of the scans fed to ICP
     max_corr_m: float = 0.06            # ICP correspondence distance of the fine stage (m); about 2 voxels
     coarse_factor: float = 2.5          # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
@@ -280,3 +287,24 @@ class Odometry:
 
         The velocity (a relative motion) is unchanged, so tracking continues smoothly from the new pose."""
         self.pose = np.asarray(T_corr, dtype=np.float64) @ self.pose
+
+
+ODOMETRY_METHODS = ("icp", "kiss_icp")
+
+
+def make_odometry(cfg: OdometryConfig | None = None, initial_pose: np.ndarray | None = None):
+    """The odometry `cfg.method` names: `Odometry` ("icp") or `jaxmap.slam.kiss.KissOdometry` ("kiss_icp").
+
+    Both have step(points_s) -> OdomStep, correct(T_corr), and the attributes pose, velocity, last (the
+    prepared Scan of the last step), n_frames. ConfigError for an unknown method."""
+    cfg = cfg or OdometryConfig()
+    if cfg.method == "icp":
+        return Odometry(cfg, initial_pose)
+    if cfg.method == "kiss_icp":
+        from jaxmap.slam.kiss import KissOdometry
+
+        return KissOdometry(cfg, initial_pose)
+    from jaxmap.config import ConfigError
+
+    raise ConfigError(f"frontend.odometry.method: unknown odometry {cfg.method!r}; use one of "
+                      + ", ".join(repr(m) for m in ODOMETRY_METHODS))

@@ -18,6 +18,9 @@ trajectory_kitti.txt and trajectory_tum.txt (every frame, and odometry_kitti.txt
 the loop meshes, metrics.json (ATE of odometry and of the optimised trajectory against the
 sequence's poses, reconstruction metrics when the sequence has ground truth, per-loop timings) and,
 with `n3_config`, an N3 map built from the optimised poses in n3/.
+
+With `--view` a live browser viewer (`jaxmap.viewer`) shows each frame's points, the trajectory (redrawn
+after each pose-graph optimisation), the loop closures and a mesh re-extracted in a background thread.
 """
 from __future__ import annotations
 
@@ -68,8 +71,9 @@ def _bar(total, desc, enabled):
     return tqdm(total=total, unit="frame", desc=desc, file=sys.stderr)
 
 
-def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True) -> dict:
-    """Our own front end drives the map. Returns trajectories and per-loop records."""
+def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, hooks=None) -> dict:
+    """Our own front end drives the map. Returns trajectories and per-loop records.
+    hooks: a `jaxmap.viewer.ViewerHooks` shown every frame (None = no viewer)."""
     from jaxmap.slam.frontend import FrontEnd
 
     fe = FrontEnd(cfg.frontend, initial_pose=seq.frame(0).pose)
@@ -88,6 +92,8 @@ def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
                                          {"frame": int(fr.index), "keyframe": int(r.keyframe_id),
                                           "optimize_s": r.timings["optimize_s"],
                                           "fitness": float(r.loop.fitness), "rmse_m": float(r.loop.rmse)}))
+        if hooks is not None:
+            _view_frame(hooks, fe, fr, r, mapper)
         if bar is not None:
             bar.set_postfix(kf=len(mapper.store), loops=len(loops), ok=r.odometry_ok)
             bar.update(1)
@@ -95,6 +101,20 @@ def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
         bar.close()
     return {"trajectory": fe.trajectory(), "odometry": np.asarray(odo), "loops": loops,
             "keyframe_frames": list(mapper.store.frames)}
+
+
+def _view_frame(hooks, fe, fr, r, mapper) -> None:
+    from jaxmap.viewer import to_world
+
+    info = dict(r.timings)
+    if r.is_keyframe and mapper.timings:
+        info.update({k: v for k, v in mapper.timings[-1].items() if k.endswith("_s")})
+    hooks.on_frame(int(fr.index), to_world(fr.points, r.pose, hooks.viewer.max_points), r.pose, info)
+    if r.optimized:
+        hooks.on_trajectory(fe.trajectory())
+        if fe.loops:
+            c, k = fe.loops[-1]
+            hooks.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
 
 
 def _close_loop(cfg, mapper, poses, out_dir, n, record):
@@ -122,7 +142,7 @@ def snapshot_files(directory: str) -> list[str]:
     return [os.path.join(directory, n) for n in sorted(names, key=key)]
 
 
-def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True) -> dict:
+def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, hooks=None) -> dict:
     """Pose snapshots of another SLAM system drive the map (see the module docstring)."""
     from jaxmap.slam.trajectory import read_pose_snapshot
 
@@ -141,7 +161,12 @@ def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
         remap_s = time.perf_counter() - t0
         new = range(len(mapper.store), len(poses))
         for k in new:
-            mapper.add_frame(seq.frame(k).points, poses[k], frame=seq.frame(k).index)
+            fr = seq.frame(k)
+            info = mapper.add_frame(fr.points, poses[k], frame=fr.index)
+            if hooks is not None:
+                from jaxmap.viewer import to_world
+
+                hooks.on_frame(int(fr.index), to_world(fr.points, poses[k], hooks.viewer.max_points), poses[k], info)
             if bar is not None:
                 bar.update(1)
         updates.append({"snapshot": os.path.basename(path), "poses": len(poses), "remapped": changed,
@@ -151,9 +176,11 @@ def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
     return {"trajectory": poses, "odometry": None, "loops": updates, "keyframe_frames": list(mapper.store.frames)}
 
 
-def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True) -> dict:
+def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
+             view: dict | None = None) -> dict:
+    """view: {"port", "mesh_every"} for a live viewer (see `jaxmap.imt.run.start_view`), None = none."""
     from jaxmap.imt.mapper import ImtMapper
-    from jaxmap.imt.run import mesh_and_evaluate, open_run_sequence, summarize
+    from jaxmap.imt.run import finish_view, mesh_and_evaluate, open_run_sequence, start_view, summarize
     from jaxmap.slam.trajectory import ate, write_kitti, write_tum
 
     os.makedirs(out_dir, exist_ok=True)
@@ -162,7 +189,13 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     seq = open_run_sequence(icfg)
     mapper = ImtMapper(icfg)
     run = run_external if cfg.external_poses else run_frontend
-    res = run(cfg, seq, out_dir, mapper, progress)
+    hooks = start_view(view, mapper)
+    try:
+        res = run(cfg, seq, out_dir, mapper, progress, hooks=hooks)
+    except BaseException:
+        if hooks is not None:
+            hooks.close()
+        raise
     mapper.save(os.path.join(out_dir, "checkpoint"))
     traj = np.asarray(res["trajectory"])
     write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
@@ -178,7 +211,13 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
         if res["odometry"] is not None:
             write_kitti(os.path.join(out_dir, "odometry_kitti.txt"), res["odometry"])
             out["ate_odometry"] = ate(res["odometry"], gt)
-    rec = mesh_and_evaluate(mapper, icfg, out_dir, evaluate=evaluate)
+    try:
+        rec = mesh_and_evaluate(mapper, icfg, out_dir, evaluate=evaluate)
+    except BaseException:
+        if hooks is not None:
+            hooks.close()
+        raise
+    finish_view(hooks, rec.get("mesh"), out_dir)
     out.update({"mesh": rec["mesh"], "faces": rec["faces"]})
     if "metrics" in rec:
         out["metrics"] = rec["metrics"]
@@ -223,7 +262,9 @@ def _jsonable(x):
 
 def cli_slam(args) -> int:
     cfg = config_from_args(args, SlamConfig)
-    out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress)
+    from jaxmap.imt.run import view_options
+
+    out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
     brief["loops"] = len(out["loops"])
     for k in ("ate_odometry", "ate_slam"):

@@ -1,11 +1,14 @@
-"""Trajectory files (KITTI, TUM) and the absolute trajectory error (ATE).
+"""Trajectory files (KITTI, TUM) and trajectory metrics: absolute (ATE) and relative (RPE) pose errors.
 
-Poses are [N,4,4] float64 T_world_sensor. KITTI: one line of 12 numbers (row-major 3x4 [R|t]) per pose.
+Metrics go through evo where it is installed (`pip install 'jaxmap[eval]'`), else through the
+implementation here; both give the same figures. Poses are [N,4,4] float64 T_world_sensor.
+KITTI: one line of 12 numbers (row-major 3x4 [R|t]) per pose.
 TUM: one line `t tx ty tz qx qy qz qw` per pose (timestamp in seconds, Hamilton quaternion, w last);
 lines starting with '#' are comments.
 """
 from __future__ import annotations
 
+import logging
 import os
 
 import numpy as np
@@ -14,6 +17,8 @@ from scipy.spatial.transform import Rotation
 from jaxmap.errors import DataError
 from jaxmap.geometry import rotation_angle, se3_inverse, validate_pose
 from jaxmap.io.kitti import write_poses
+
+log = logging.getLogger("jaxmap")
 
 
 def write_kitti(path, poses) -> None:
@@ -137,22 +142,121 @@ def align_se3(est_xyz: np.ndarray, gt_xyz: np.ndarray) -> np.ndarray:
     return S
 
 
-def ate(est, gt, align: str = "none") -> dict:
+def _poses_pair(est, gt, name: str) -> tuple[np.ndarray, np.ndarray]:
+    est = np.asarray(est, dtype=np.float64).reshape(-1, 4, 4)
+    gt = np.asarray(gt, dtype=np.float64).reshape(-1, 4, 4)
+    if est.shape != gt.shape or len(est) == 0:
+        raise ValueError(f"{name}: need equally many poses, got {est.shape} and {gt.shape}")
+    return est, gt
+
+
+def have_evo() -> bool:
+    """True when the `evo` package (trajectory evaluation, `pip install 'jaxmap[eval]'`) is importable."""
+    try:
+        import evo.core.metrics  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _backend(backend: str) -> str:
+    if backend == "auto":
+        return "evo" if have_evo() else "jaxmap"
+    if backend not in ("evo", "jaxmap"):
+        raise ValueError(f"backend must be 'auto', 'evo' or 'jaxmap', got {backend!r}")
+    return backend
+
+
+def _stats(err: np.ndarray, rot_deg: np.ndarray) -> dict:
+    return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "mean_m": float(err.mean()), "max_m": float(err.max()),
+            "rot_rmse_deg": float(np.sqrt(np.mean(rot_deg ** 2)))}
+
+
+def ate(est, gt, align: str = "none", backend: str = "auto") -> dict:
     """Absolute trajectory error of estimated vs ground-truth poses ([N,4,4] each, same frames).
 
     align: "none" compares as is; "se3" first applies the rigid transform that best aligns the estimated
     positions to the ground truth (Umeyama). Returns dict(rmse_m, mean_m, max_m) of the position errors
     and rot_rmse_deg, the RMSE of the rotation angle of gt_i^-1 @ est_i (after alignment).
+    backend: "evo" (evo's APE; `pip install 'jaxmap[eval]'`), "jaxmap" (this module's implementation) or
+    "auto" (evo where it is installed and accepts the input, else jaxmap's: evo refuses to align a straight
+    or one-pose trajectory); both give the same figures (tests/test_trajectory_metrics.py).
     """
-    est = np.asarray(est, dtype=np.float64).reshape(-1, 4, 4)
-    gt = np.asarray(gt, dtype=np.float64).reshape(-1, 4, 4)
-    if est.shape != gt.shape or len(est) == 0:
-        raise ValueError(f"ate: need equally many poses, got {est.shape} and {gt.shape}")
+    est, gt = _poses_pair(est, gt, "ate")
+    if align not in ("none", "se3"):
+        raise ValueError(f"ate: align must be 'none' or 'se3', got {align!r}")
+    if _backend(backend) == "evo":
+        try:
+            return _evo_ape(est, gt, align)
+        except Exception as e:  # evo refuses some alignments (e.g. a straight or one-pose trajectory)
+            if backend == "evo":
+                raise
+            log.debug("evo APE failed (%s); jaxmap's ATE instead", e)
     if align == "se3":
         est = align_se3(est[:, :3, 3], gt[:, :3, 3]) @ est
-    elif align != "none":
-        raise ValueError(f"ate: align must be 'none' or 'se3', got {align!r}")
     err = np.linalg.norm(est[:, :3, 3] - gt[:, :3, 3], axis=1)
     rot = np.degrees(rotation_angle(se3_inverse(gt)[:, :3, :3] @ est[:, :3, :3]))
-    return {"rmse_m": float(np.sqrt(np.mean(err ** 2))), "mean_m": float(err.mean()), "max_m": float(err.max()),
-            "rot_rmse_deg": float(np.sqrt(np.mean(rot ** 2)))}
+    return _stats(err, rot)
+
+
+def rpe(est, gt, delta: int = 1, backend: str = "auto") -> dict:
+    """Relative pose error over `delta` frames ([N,4,4] each, same frames, N > delta).
+
+    For i = 0, delta, 2 delta, ...: E_i = (gt_i^-1 gt_{i+delta})^-1 (est_i^-1 est_{i+delta}); returns dict(rmse_m,
+    mean_m, max_m)
+    of |translation of E_i| and rot_rmse_deg of the rotation angle of E_i (evo's RPE with delta in frames).
+    backend as for `ate`.
+    """
+    est, gt = _poses_pair(est, gt, "rpe")
+    delta = int(delta)
+    if delta < 1 or len(est) <= delta:
+        raise ValueError(f"rpe: need delta >= 1 and more than delta poses, got delta={delta} for {len(est)} poses")
+    if _backend(backend) == "evo":
+        try:
+            return _evo_rpe(est, gt, delta)
+        except Exception as e:
+            if backend == "evo":
+                raise
+            log.debug("evo RPE failed (%s); jaxmap's RPE instead", e)
+    ids = np.arange(0, len(est), delta)            # pairs (0, d), (d, 2d), ...: evo's all_pairs=False
+    i, j = ids[:-1], ids[1:]
+    rel_e = se3_inverse(est[i]) @ est[j]
+    rel_g = se3_inverse(gt[i]) @ gt[j]
+    E = se3_inverse(rel_g) @ rel_e
+    return _stats(np.linalg.norm(E[:, :3, 3], axis=1), np.degrees(rotation_angle(E[:, :3, :3])))
+
+
+def _evo_paths(est, gt):
+    from evo.core.trajectory import PosePath3D
+
+    return PosePath3D(poses_se3=list(est)), PosePath3D(poses_se3=list(gt))
+
+
+def _evo_stats(metric_t, metric_r) -> dict:
+    from evo.core.metrics import StatisticsType as S
+
+    return {"rmse_m": float(metric_t.get_statistic(S.rmse)), "mean_m": float(metric_t.get_statistic(S.mean)),
+            "max_m": float(metric_t.get_statistic(S.max)), "rot_rmse_deg": float(metric_r.get_statistic(S.rmse))}
+
+
+def _evo_ape(est, gt, align: str) -> dict:
+    from evo.core.metrics import APE, PoseRelation
+
+    p_est, p_gt = _evo_paths(est, gt)
+    if align == "se3":
+        p_est.align(p_gt, correct_scale=False)
+    t, r = APE(PoseRelation.translation_part), APE(PoseRelation.rotation_angle_deg)
+    t.process_data((p_gt, p_est))
+    r.process_data((p_gt, p_est))
+    return _evo_stats(t, r)
+
+
+def _evo_rpe(est, gt, delta: int) -> dict:
+    from evo.core.metrics import RPE, PoseRelation, Unit
+
+    p_est, p_gt = _evo_paths(est, gt)
+    t = RPE(PoseRelation.translation_part, delta=delta, delta_unit=Unit.frames, all_pairs=False)
+    r = RPE(PoseRelation.rotation_angle_deg, delta=delta, delta_unit=Unit.frames, all_pairs=False)
+    t.process_data((p_gt, p_est))
+    r.process_data((p_gt, p_est))
+    return _evo_stats(t, r)

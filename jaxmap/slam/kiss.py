@@ -1,0 +1,136 @@
+"""KISS-ICP (Vizzo et al., "KISS-ICP: In Defense of Point-to-Point ICP", RA-L 2023) as jaxmap's odometry.
+
+`KissOdometry` wraps `kiss_icp.kiss_icp.KissICP` (`pip install kiss-icp`) behind the interface of
+`jaxmap.slam.odometry.Odometry`, so the front end (`FrontEnd`, `jaxmap slam`) uses either one by
+`frontend.odometry.method` ("icp" or "kiss_icp"). KISS-ICP registers each scan to a voxel-hashed local
+map (not to the previous scan) with a constant-velocity prediction and an adaptive correspondence
+threshold; its parameters come from the OdometryConfig: range crop (min_range_m, max_range_m) and
+the local-map voxel (kiss_voxel_m, 0 = max_range_m / 100 as KISS-ICP's default). Deskewing is off
+(jaxmap frames have no per-point times).
+
+KISS-ICP keeps its own trajectory, starting at the identity. The world pose of frame i is
+C @ T0 @ K_i, with T0 the initial pose and C the accumulated pose-graph corrections (`correct`), so a
+loop closure moves the estimate without disturbing KISS-ICP's local map.
+
+For the pose graph each step also gets what `Odometry` gives: fitness, inlier RMSE and the 6x6
+information of the relative motion, from the prepared scans (`Scan`, voxel_m / normals as for ICP)
+of this frame and the previous one (open3d's evaluate_registration / information matrix at
+max_corr_m). A step whose fitness or RMSE fails min_fitness / max_rmse_m is reported with ok=False
+and a weak information; its motion is still KISS-ICP's (the local map already holds the scan).
+"""
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from jaxmap.errors import JaxmapError
+from jaxmap.slam.odometry import OdometryConfig, OdomStep, Scan, quiet_open3d, to_o3d
+
+log = logging.getLogger("jaxmap")
+
+
+def kiss_config(cfg: OdometryConfig):
+    """The KISSConfig of an OdometryConfig (range crop, local-map voxel, no deskewing)."""
+    try:
+        from kiss_icp.config import KISSConfig
+    except ImportError:
+        raise JaxmapError("frontend.odometry.method is 'kiss_icp' but the kiss-icp package is not installed; "
+                          "pip install kiss-icp (or set frontend.odometry.method=icp)") from None
+    kc = KISSConfig()
+    kc.data.deskew = False
+    kc.data.min_range = float(cfg.min_range_m)
+    kc.data.max_range = float(cfg.max_range_m)
+    kc.mapping.voxel_size = float(cfg.kiss_voxel_m) if cfg.kiss_voxel_m > 0 else float(cfg.max_range_m) / 100.0
+    return kc
+
+
+class KissOdometry:
+    """Streaming KISS-ICP odometry with the interface of `Odometry` (see the module docstring).
+
+    Usage: `odo = KissOdometry(cfg, initial_pose)`, then `odo.step(points_s)` per frame in order;
+    `odo.correct(T_corr)` after a pose-graph correction (T_world <- T_corr @ T_world).
+    """
+
+    def __init__(self, cfg: OdometryConfig | None = None, initial_pose: np.ndarray | None = None):
+        from kiss_icp.kiss_icp import KissICP
+
+        self.cfg = cfg or OdometryConfig(method="kiss_icp")
+        self.kiss = KissICP(kiss_config(self.cfg))
+        self.T0 = np.eye(4) if initial_pose is None else np.array(initial_pose, dtype=np.float64)
+        self.C = np.eye(4)               # accumulated world-frame corrections
+        self.pose = self.T0.copy()
+        self.velocity = np.eye(4)        # T_{i-1,i} of the last step
+        self.prev: Scan | None = None
+        self.last: Scan | None = None
+        self.n_frames = 0
+
+    def step(self, points_s: np.ndarray) -> OdomStep:
+        """Register the next scan. points_s: [N,3] float, sensor frame. Returns an OdomStep."""
+        cfg = self.cfg
+        scan = Scan(points_s, cfg)
+        frame = self.n_frames
+        self.n_frames += 1
+        self.last = scan
+        pts = np.ascontiguousarray(np.asarray(points_s, dtype=np.float64).reshape(-1, 3))
+        self.kiss.register_frame(pts, np.empty((0,), dtype=np.float64))
+        self.pose = self.C @ self.T0 @ self.kiss.last_pose
+        if self.prev is None:
+            self.prev = scan
+            return OdomStep(self.pose.copy(), np.eye(4), 1.0, 0.0, True, np.eye(6))
+        rel = np.array(self.kiss.last_delta, dtype=np.float64)
+        fitness, rmse, info = self._quality(scan, self.prev, rel)
+        ok = fitness >= cfg.min_fitness and rmse <= cfg.max_rmse_m
+        if not ok:
+            log.warning("odometry frame %d: KISS-ICP step fits poorly (fitness %.3f < %.2f or RMSE %.4f m > %.4f m); "
+                        "kept, with a weak pose-graph edge", frame, fitness, cfg.min_fitness, rmse, cfg.max_rmse_m)
+        self.velocity = rel
+        self.prev = scan
+        return OdomStep(self.pose.copy(), rel.copy(), fitness, rmse, ok, info if ok else np.eye(6))
+
+    def _quality(self, source: Scan, target: Scan, T: np.ndarray) -> tuple[float, float, np.ndarray]:
+        """(fitness, inlier RMSE, [6,6] information) of T_target_source on the prepared scans."""
+        if len(source) == 0 or len(target) == 0:
+            return 0.0, float("inf"), np.eye(6)
+        import open3d as o3d
+
+        reg = o3d.pipelines.registration
+        src, tgt = to_o3d(source.points, source.normals), to_o3d(target.points, target.normals)
+        with quiet_open3d():
+            ev = reg.evaluate_registration(src, tgt, float(self.cfg.max_corr_m), T)
+            info = np.array(reg.get_information_matrix_from_point_clouds(src, tgt, float(self.cfg.max_corr_m), T))
+        return float(ev.fitness), float(ev.inlier_rmse), info
+
+    def correct(self, T_corr: np.ndarray) -> None:
+        """Apply a world-frame correction: pose <- T_corr @ pose (KISS-ICP's local map is untouched)."""
+        self.C = np.asarray(T_corr, dtype=np.float64) @ self.C
+        self.pose = np.asarray(T_corr, dtype=np.float64) @ self.pose
+
+
+def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tuple[np.ndarray, float]:
+    """Run the odometry `cfg.method` names over every frame of `seq` from its first pose.
+
+    Returns (poses [N,4,4] float64, median seconds per frame after the first)."""
+    import time
+
+    from jaxmap.slam.odometry import make_odometry
+
+    odo = make_odometry(cfg, np.asarray(seq.poses[0], dtype=np.float64))
+    poses, times = [], []
+    bar = None
+    if progress:
+        import sys
+
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(seq), unit="frame", desc=f"odometry ({cfg.method})", file=sys.stderr)
+    for i in range(len(seq)):
+        pts = seq.frame(i).points
+        t0 = time.perf_counter()
+        poses.append(odo.step(pts).pose)
+        times.append(time.perf_counter() - t0)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    return np.stack(poses), float(np.median(times[1:])) if len(times) > 1 else float(times[0])

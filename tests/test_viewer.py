@@ -1,0 +1,203 @@
+"""The live browser viewer (jaxmap.viewer, viser): scene and GUI calls, the background mesh thread, and a
+finished run loaded in headless chromium, whose screenshot must not be blank."""
+import os
+import shutil
+import socket
+import subprocess
+import threading
+import time
+
+import numpy as np
+import pytest
+
+viser = pytest.importorskip("viser", reason="viser is not installed (pip install 'jaxmap[view]')")
+
+from jaxmap.viewer import MeshWorker, Viewer, attach_viewer, error_colors, open_run, to_world  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def _box_mesh():
+    import trimesh
+
+    return trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+
+
+def test_viewer_scene_and_gui_calls():
+    v = Viewer(port=free_port(), quiet=True, max_points=500)
+    try:
+        assert v.host == "0.0.0.0" and v.url.endswith(f":{v.port}")
+        pose = np.eye(4)
+        pose[:3, 3] = [1.0, 2.0, 0.5]
+        pts = np.random.default_rng(0).normal(size=(2000, 3)).astype(np.float32)
+        w = to_world(pts, pose, max_points=800)
+        assert w.shape == (800, 3) and np.allclose(to_world(pts, pose)[:, :3], pts + pose[:3, 3], atol=1e-6)
+        v.show_scan(w)
+        v.show_pose(pose)
+        for i in range(3):
+            p = pose.copy()
+            p[0, 3] += i
+            v.add_trajectory_pose(p)
+        assert len(v._traj) == 3
+        m = _box_mesh()
+        v.show_mesh(m)
+        v.show_mesh(m, vertex_colors=error_colors(np.linspace(0, 0.2, len(m.vertices)), 0.1))
+        v.show_loops(np.array([[[0, 0, 0], [1, 1, 0]]], dtype=float))
+        v.update_info(frame=3, loss=0.0123, timings={"encode_s": 0.5}, note="x")
+        assert v._g_frame.value == "3" and v._g_loss.value == "0.0123" and "encode_s: 500.0 ms" in v._g_times.content
+    finally:
+        v.close()
+
+
+def test_error_colors_blue_to_red():
+    c = error_colors(np.array([0.0, 0.05, 0.1, 1.0]), 0.1)
+    assert c.dtype == np.uint8 and c.shape == (4, 3)
+    assert c[0, 2] > c[0, 0] and c[2, 0] > c[2, 2] and np.array_equal(c[2], c[3])
+
+
+def test_mesh_worker_runs_in_the_background_and_skips_while_busy():
+    gate, got = threading.Event(), []
+    w = MeshWorker(lambda: (gate.wait(5), "mesh")[1], got.append)
+    assert w.request() and w.busy()
+    assert not w.request() and w.skipped == 1                 # one extraction at a time
+    gate.set()
+    w.join(5)
+    assert got == ["mesh"] and w.runs == 1 and not w.busy()
+    w.max_share, w._next_ok = 0.05, time.perf_counter() + 60   # duty-cycle budget: too soon after the last one
+    assert not w.request() and w.throttled == 1
+
+
+def test_attach_viewer_hooks():
+    calls = []
+
+    def mesh_fn():
+        calls.append(1)
+        return _box_mesh()
+
+    hooks = attach_viewer(port=free_port(), mesh_every=2, mesh_fn=mesh_fn, mesh_max_share=0, quiet=True)
+    try:
+        for i in range(4):
+            pose = np.eye(4)
+            pose[0, 3] = i
+            hooks.on_frame(i, np.random.default_rng(i).normal(size=(100, 3)), pose, {"loss": 0.5, "fuse_s": 0.01})
+            hooks.worker.join(5)
+        assert len(calls) == 2 and hooks.viewer._g_frame.value == "3"
+        hooks.on_trajectory(np.tile(np.eye(4), (4, 1, 1)))
+        hooks.on_loop(np.eye(4), np.eye(4))
+        hooks.finish(_box_mesh())
+    finally:
+        hooks.close()
+
+
+def test_snapshot_is_taken_in_the_loop_thread():
+    """snapshot_fn runs where on_frame is called; mesh_fn gets its result in the background thread."""
+    state = {"frame": 0}
+    seen = []
+
+    def mesh_fn(snap):
+        seen.append((snap, threading.current_thread().name))
+        return _box_mesh()
+
+    hooks = attach_viewer(port=free_port(), mesh_every=1, mesh_fn=mesh_fn, mesh_max_share=0, quiet=True,
+                          snapshot_fn=lambda: (dict(state), threading.current_thread().name))
+    try:
+        for i in range(2):
+            state["frame"] = i
+            hooks.on_frame(i, np.zeros((10, 3)), np.eye(4), {})
+            hooks.worker.join(5)
+    finally:
+        hooks.close()
+    main = threading.current_thread().name
+    assert [s[0][0]["frame"] for s in seen] == [0, 1] and all(s[0][1] == main for s in seen)
+    assert all(s[1] == "jaxmap-viewer-mesh" for s in seen)
+
+
+# ------------------------------------------------------------------------------------------------
+# a finished run in a real browser
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    """`jaxmap imt` on a 4-frame small room (2 frames mapped, coarse mesh): a finished run directory."""
+    from jaxmap.cli import main
+    from jaxmap.synth.room import generate_room
+
+    root = tmp_path_factory.mktemp("viewer_run")
+    data, run = root / "room", root / "run"
+    generate_room(data, seed=0, small=True, n_frames=4)
+    rc = main(["imt", "configs/room_imt.yaml", "--data", str(data), "--out", str(run), "--no-progress",
+               "--set", "mesh.resolution=2", "--set", "eval.n_samples=20000"])
+    assert rc == 0 and (run / "mesh.ply").is_file()
+    return run
+
+
+def screenshot(url: str, out: str, size=(1280, 800), budget_ms: int = 15000) -> subprocess.CompletedProcess:
+    """Load `url` in headless chromium (software WebGL) and save a PNG screenshot."""
+    cmd = [chromium(), "--headless", "--no-sandbox", "--disable-gpu-sandbox", "--use-gl=angle",
+           "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--hide-scrollbars", "--mute-audio",
+           "--no-first-run", f"--window-size={size[0]},{size[1]}", f"--virtual-time-budget={budget_ms}",
+           f"--user-data-dir={os.path.dirname(out)}/chromium-profile", f"--screenshot={out}", url]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+
+
+@pytest.mark.skipif(chromium() is None, reason="chromium is not installed (make sysdeps, or apt-get install chromium)")
+def test_viewer_in_headless_chromium_shows_the_run(small_run, tmp_path):
+    from PIL import Image
+
+    v, facts = open_run(small_run, port=free_port(), quiet=True)
+    try:
+        assert facts["faces"] > 0 and "error_mean_m" in facts     # the room has ground truth: error colours
+        out = str(tmp_path / "viewer.png")
+        r = screenshot(f"http://127.0.0.1:{v.port}/", out)
+        assert r.returncode == 0 and os.path.isfile(out), r.stderr[-2000:]
+    finally:
+        v.close()
+    img = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    assert img.shape[:2] == (800, 1280)
+    # the 3D canvas (left of viser's control panel): not one colour, and the mesh covers part of it
+    canvas = img[150:750, 100:900]
+    background = np.median(np.concatenate([canvas[:5].reshape(-1, 3), canvas[-5:].reshape(-1, 3)]), axis=0)
+    differs = np.abs(canvas - background).sum(-1) > 30
+    assert len(np.unique(canvas.reshape(-1, 3), axis=0)) > 50
+    assert differs.mean() > 0.05, f"only {100 * differs.mean():.2f} % of the canvas differs from the background"
+    # error-coloured mesh: some pixels are clearly bluish/greenish (not grey UI)
+    sat = canvas.max(-1) - canvas.min(-1)
+    assert (sat > 60).mean() > 0.01
+
+
+def test_view_command_no_wait(small_run, capsys):
+    from jaxmap.cli import main
+
+    assert main(["view", str(small_run), "--port", str(free_port()), "--no-wait"]) == 0
+    assert "faces=" in capsys.readouterr().err
+    assert main(["view", str(small_run.parent / "missing")]) == 2
+    assert "missing" in capsys.readouterr().err
+
+
+def test_copy_arrays_survives_donation():
+    """A snapshot for the background mesh must outlive the next frame's donated update (N3 donates)."""
+    import jax
+    import jax.numpy as jnp
+
+    from jaxmap.viewer import copy_arrays
+
+    step = jax.jit(lambda s: {"a": s["a"] + 1}, donate_argnums=0)
+    state = {"a": jnp.arange(4.0)}
+    snap = copy_arrays((state, 3, np.ones(2)))
+    state = step(state)
+    np.testing.assert_array_equal(np.asarray(snap[0]["a"]), np.arange(4.0))
+    assert snap[1] == 3 and isinstance(snap[2], np.ndarray)
+    np.testing.assert_array_equal(np.asarray(state["a"]), np.arange(4.0) + 1)
