@@ -1,5 +1,26 @@
 """jaxmap: neural implicit 3D mapping in JAX (N3-Mapping and transformable neural implicit maps)."""
+import os as _os
+import sys as _sys
+
 __version__ = "0.1.0"
+
+
+def _enable_compilation_cache():
+    # For library users as for the CLI (see jaxmap.compile_cache). Before jax is imported the
+    # environment is enough and keeps `import jaxmap` light; after, the config is updated.
+    from jaxmap import compile_cache
+
+    path = compile_cache.cache_dir()
+    if not path:
+        return
+    if "jax" in _sys.modules:
+        compile_cache.enable(path)
+    else:
+        _os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", path)
+        _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+
+
+_enable_compilation_cache()
 
 
 def __getattr__(name):

@@ -1,11 +1,11 @@
-"""Orbax save/restore of a whole N3 map (state pytree + the small metadata needed to rebuild it).
+"""Atomic checkpoints of a state pytree plus a small JSON of metadata (orbax underneath).
 
 Layout of a checkpoint directory:
-  state/        orbax PyTree checkpoint of `N3State` (hash tables, features, Adam moments,
-                decoder, pair store, PRNG key, frame counter)
-  meta.json     config, map origin (float64), capacities, per-frame timings so far
+  state/        orbax PyTree checkpoint of the state (N3: `jaxmap.n3.core.N3State`; IMT: the latent map)
+  meta.json     what is needed to rebuild it: the config, capacities, per-frame timings so far
 Writes go to a temporary directory that is renamed into place, so an interrupted save never
-leaves a half-written checkpoint behind.
+leaves a half-written checkpoint behind. The mappers' own modules (`jaxmap.n3.checkpoint`, the
+IMT mapper) build on `save_tree` / `read_meta`; this module imports none of them.
 """
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ import shutil
 import jax
 import numpy as np
 
-from jaxmap.config import MapConfig, from_dict, to_dict
 from jaxmap.errors import DataError
 
 
@@ -55,49 +54,3 @@ def read_meta(path: str, what: str = "jaxmap") -> tuple[str, dict]:
         raise DataError(f"{path}: not a {what} checkpoint (no meta.json); pass RUN_DIR/checkpoint")
     with open(meta_path) as f:
         return path, json.load(f)
-
-
-def save_mapper(mapper, path: str) -> None:
-    """Write `mapper` (an N3Mapper) to directory `path` atomically (replacing an older one)."""
-    s = mapper.state
-    meta = {
-        "config": to_dict(mapper.cfg),
-        "origin": None if mapper.origin is None else [float(x) for x in mapper.origin],
-        "frame": int(s.frame),
-        "capacity": {
-            "voxel_table": int(s.voxels.keys.shape[0]), "corner_table": int(s.corners.keys.shape[0]),
-            "voxel_rows": int(s.voxel_coord.shape[0]), "feature_rows": int(s.features.shape[0]),
-            "store_blocks": int(s.store.n_slots),
-        },
-        "timings": mapper.timings,
-    }
-    save_tree(path, s, meta)
-
-
-def load_mapper(path: str):
-    """Rebuild an N3Mapper saved by `save_mapper`."""
-    from jaxmap.grid import hashing
-    from jaxmap.n3 import window
-    from jaxmap.n3.mapper import N3Mapper
-
-    path, meta = read_meta(path)
-    cfg = from_dict(MapConfig, meta["config"], source=os.path.join(path, "meta.json"))
-    m = N3Mapper(cfg)
-    cap = meta["capacity"]
-    s = m.state
-    # A template with the saved capacities, so the restored arrays keep their exact structure.
-    import jax.numpy as jnp
-
-    d = s.features.shape[-1]
-    template = s.replace(
-        voxels=hashing.create(cap["voxel_table"]), corners=hashing.create(cap["corner_table"]),
-        voxel_coord=jnp.zeros((cap["voxel_rows"], 3), jnp.int32),
-        voxel_corner_rows=jnp.zeros((cap["voxel_rows"], s.voxel_corner_rows.shape[1]), jnp.int32),
-        features=jnp.zeros((cap["feature_rows"], 4, d), jnp.float32),
-        store=window.create(cap["store_blocks"], cfg.window.pairs_per_voxel, cap["voxel_rows"]),
-    )
-    restored = _checkpointer().restore(os.path.join(path, "state"), item=jax.device_get(template))
-    m.state = jax.tree_util.tree_map(jnp.asarray, restored)
-    m.origin = None if meta["origin"] is None else np.asarray(meta["origin"], np.float64)
-    m.timings = list(meta.get("timings", []))
-    return m

@@ -18,6 +18,14 @@ def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = No
                    help="override a config key, e.g. --set train.iters=20 (repeatable)")
 
 
+def _add_view_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--view", action="store_true",
+                   help="live browser viewer (viser, bound to 0.0.0.0; pip install 'jaxmap[view]')")
+    p.add_argument("--view-port", type=int, default=8080, help="viewer port")
+    p.add_argument("--view-mesh-every", type=int, default=10,
+                   help="re-extract the viewer's mesh every N frames, in a background thread (0 = never)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxmap", description="Neural implicit 3D mapping in JAX.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -31,6 +39,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="number of frames (default per preset)")
     p.add_argument("--noise", type=float, default=0.0, help="range noise std in metres")
     p.add_argument("--pedestrians", action="store_true", help="city: add moving pedestrians (not in the GT)")
+    p.add_argument("--long", action="store_true",
+                   help="city: a 1.1 km serpentine drive through a 256 m x 200 m city, 1025 frames (~35 s, 1.4 GB)")
 
     p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
     p.add_argument("mesh")
@@ -53,6 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_config_args(p, default_config="")
     p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-mesh", action="store_true", help="map and checkpoint only: no mesh, no metrics")
+    _add_view_args(p)
 
     p = sub.add_parser("mesh", help="re-extract a mesh from a saved map")
     p.add_argument("run", help="run directory")
@@ -70,10 +82,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("imt", help="transformable latent map of a sequence: encode, fuse, mesh, metrics")
     _add_config_args(p, default_config="configs/room_imt.yaml")
     p.add_argument("--no-progress", action="store_true")
+    _add_view_args(p)
 
     p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
     _add_config_args(p, default_config="configs/room_slam.yaml")
     p.add_argument("--no-progress", action="store_true")
+    _add_view_args(p)
+
+    p = sub.add_parser("info", help="what a sequence is: kind, frames, ROS bag topics with types and counts")
+    p.add_argument("path", help="sequence directory or file (KITTI, depth, ROS bag/MCAP, TUM RGB-D, Replica, LAS)")
+    p.add_argument("--kind", default="auto", help="sequence kind (default: detected, as data.kind)")
+    p.add_argument("--topic", default="", help="ROS bag: the PointCloud2 topic to count frames of (data.topic)")
+
+    p = sub.add_parser("view", help="open a finished run in the browser viewer (mesh, trajectory, errors)")
+    p.add_argument("run", help="run directory (mesh.ply, config.yaml, trajectory_kitti.txt)")
+    p.add_argument("--port", type=int, default=8080, help="viewer port (bound to 0.0.0.0)")
+    p.add_argument("--no-wait", action="store_true", help="load the scene and exit (for tests)")
 
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
     p.add_argument("suite", choices=["n3", "imt", "slam"])
@@ -83,33 +107,35 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default=None, help="output directory (default runs/bench_SUITE)")
     p.add_argument("--frames", type=int, default=None)
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
+    p.add_argument("--long", action="store_true",
+                   help="n3: the 1.1 km drive of `jaxmap synth city --long` (per-frame cost and memory over time)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     return parser
 
 
-def _enable_compilation_cache() -> None:
-    """Keep XLA compilations on disk, so a second run skips the compiles that table growth triggers.
-    JAXMAP_CACHE_DIR overrides the place; an empty value turns the cache off."""
-    path = os.environ.get("JAXMAP_CACHE_DIR", os.path.join(os.path.expanduser("~"), ".cache", "jaxmap", "xla"))
-    if not path:
+def _limit_malloc_arenas(n: int = 2) -> None:
+    """glibc gives every thread that allocates its own malloc arena (up to 8 per core); XLA's worker
+    threads, the prefetch and checkpoint threads then leave ~600 MB of freed-but-kept memory spread
+    over arenas in a mapping run. Two arenas keep the peak RSS of `jaxmap map` on the city near 1 GB
+    instead of 2.7 GB (same speed). Same as MALLOC_ARENA_MAX=2; a no-op off glibc."""
+    if "MALLOC_ARENA_MAX" in os.environ:
         return
-    import jax
-
     try:
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
-    except Exception as e:  # an old jax without the option: run uncached rather than fail
-        logging.getLogger("jaxmap").debug("no persistent compilation cache: %s", e)
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").mallopt(-8, n)  # M_ARENA_MAX
+    except (OSError, AttributeError):
+        pass
 
 
 def main(argv: list[str] | None = None) -> int:
+    _limit_malloc_arenas()
     args = build_parser().parse_args(argv)
     # Our messages at INFO; other libraries' (jax's backend probing, orbax) only from WARNING. Records
     # of the "jaxmap" logger pass its own level and then reach the root handler whatever the root level.
     logging.basicConfig(level=logging.WARNING, format="[%(name)s] %(message)s", stream=sys.stderr)
     ours = logging.getLogger("jaxmap")
     ours.setLevel(logging.DEBUG if args.verbose else logging.INFO)
-    _enable_compilation_cache()
     from jaxmap.errors import JaxmapError
 
     try:
@@ -128,6 +154,12 @@ def _dispatch(args) -> int:
         kw = {"pedestrians": True} if args.pedestrians else {}
         if args.pedestrians and args.scene != "city":
             raise SystemExit("jaxmap synth: --pedestrians is for the city scene")
+        if args.long:
+            if args.scene != "city":
+                raise SystemExit("jaxmap synth: --long is for the city scene")
+            if args.small:
+                raise SystemExit("jaxmap synth: --long and --small are different presets; pick one")
+            kw["long"] = True
         stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
         print(json.dumps(stats))
         return 0
@@ -164,6 +196,15 @@ def _dispatch(args) -> int:
         from jaxmap.imt import run as imt_run
 
         return imt_run.cli_imt(args)
+    if args.command == "info":
+        from jaxmap.info import format_info, sequence_info
+
+        print(format_info(sequence_info(args.path, kind=args.kind, topic=args.topic)))
+        return 0
+    if args.command == "view":
+        from jaxmap.viewer import view_run
+
+        return view_run(args.run, port=args.port, wait=not args.no_wait)
     if args.command == "bench":
         args.out = args.out or f"runs/bench_{args.suite}"
         if args.suite == "slam":

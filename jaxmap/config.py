@@ -136,7 +136,7 @@ class MapConfig:
 
 
 # ---------------------------------------------------------------------------------------------
-# The transformable latent map config (jaxmap imt, jaxmap slam). DESIGN.md section 8, indoor column.
+# The transformable latent map config (jaxmap imt, jaxmap slam); indoor settings of the IMT paper.
 # ---------------------------------------------------------------------------------------------
 
 

@@ -1,4 +1,4 @@
-"""Reconstruction metrics with the culling protocol of DESIGN.md section 6 (N3-Mapping, section IV-A).
+"""Reconstruction metrics with the culling protocol of N3-Mapping, section IV-A (README: Evaluation protocol).
 
 Protocol, all in the world frame, metres in and centimetres / percent out:
 

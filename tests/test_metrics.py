@@ -1,4 +1,4 @@
-"""jaxmap.metrics: the evaluation protocol of DESIGN.md section 6 on scenes with known answers."""
+"""jaxmap.metrics: the evaluation protocol (README) on scenes with known answers."""
 import json
 import os
 

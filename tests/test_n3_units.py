@@ -3,7 +3,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.n3 import hierarchical, window
 from jaxmap.n3.loss import bce_loss, eikonal_loss, sdf_and_grad
 from jaxmap.n3.sampling import sample_frame
 from jaxmap.preprocess import estimate_normals, voxel_downsample
@@ -101,116 +100,7 @@ def test_voxel_downsample_keeps_one_point_per_voxel():
     assert len(np.unique(keys, axis=0)) == len(d) == 64
 
 
-# ---- the voxel-oriented store against a slow Python reference ----
-
-def _reference_store(batches, P):
-    ref = {}
-    for slots, vals in batches:
-        for s, v in zip(slots, vals):
-            if s >= 0:
-                ref.setdefault(s, []).append(v)
-    return {s: vs[-P:] for s, vs in ref.items()}
-
-
-def test_write_pairs_keeps_the_newest_P_per_block_like_a_python_reference():
-    rng = np.random.default_rng(3)
-    S, P = 16, 5
-    st = window.create(S, P, 64)
-    batches = []
-    write = jax.jit(window.write_pairs)
-    for f in range(6):
-        m = 40
-        slots = rng.integers(-1, S, size=m).astype(np.int32)
-        vals = rng.normal(size=m).astype(np.float32)
-        pts = np.tile(vals[:, None], (1, 3))
-        st = write(st, jnp.asarray(slots), jnp.asarray(pts), jnp.asarray(vals), jnp.ones(m, bool), jnp.int32(f))
-        batches.append((slots, vals))
-    ref = _reference_store(batches, P)
-    for s in range(S):
-        got = sorted(np.asarray(st.pairs[s, : int(st.count[s]), 3]).tolist())
-        assert got == sorted(ref.get(s, [])), s
-
-
-def test_assign_slots_gives_each_voxel_one_block_and_reports_overflow():
-    st = window.create(4, 8, 32)
-    rows = jnp.asarray([3, 3, 7, -1, 9, 7], jnp.int32)
-    coords = jnp.stack([rows, rows, rows], 1)
-    st, slots, over = window.assign_slots(st, rows, coords)
-    slots = np.asarray(slots)
-    assert not bool(over)
-    assert slots[0] == slots[1] and slots[2] == slots[5] and slots[3] == -1
-    assert len({slots[0], slots[2], slots[4]}) == 3
-    st, slots2, over = window.assign_slots(st, jnp.asarray([11, 12, 3], jnp.int32), jnp.zeros((3, 3), jnp.int32))
-    assert bool(over)  # 2 new voxels, 1 free slot: reported, never silently dropped
-
-
-def test_window_releases_blocks_that_leave_the_cube():
-    st = window.create(8, 4, 16)
-    rows = jnp.arange(4, dtype=jnp.int32)
-    coords = jnp.asarray([[0, 0, 0], [5, 0, 0], [50, 0, 0], [-50, 0, 0]], jnp.int32)
-    st, slots, _ = window.assign_slots(st, rows, coords)
-    keep = window.in_window(st, jnp.asarray([0, 0, 0]), 10, mode="voxel", frame=0, keyframes=0)
-    st = window.release(st, keep)
-    assert np.asarray(st.slot_of_voxel)[:4].tolist()[2:] == [-1, -1]
-    assert (np.asarray(st.voxel_of_slot) >= 0).sum() == 2
-
-
-def test_hierarchical_sampler_matches_algorithm_1():
-    """Every drawn pair comes from a window block; blocks under Nt give Np//3 valid pairs."""
-    S, P = 6, 32
-    st = window.create(S, P, 16)
-    rows = jnp.arange(S, dtype=jnp.int32)
-    st, slots, _ = window.assign_slots(st, rows, jnp.zeros((S, 3), jnp.int32))
-    counts = [30, 3, 12, 0, 9, 20]
-    pts, lab, sl = [], [], []
-    for s, c in enumerate(counts):
-        for j in range(c):
-            pts.append([s, j, 0]); lab.append(s * 100 + j); sl.append(int(slots[s]))
-    st = window.write_pairs(st, jnp.asarray(sl, jnp.int32), jnp.asarray(pts, jnp.float32),
-                            jnp.asarray(lab, jnp.float32), jnp.ones(len(lab), bool), jnp.int32(0))
-    inside = jnp.asarray([True, True, False, True, True, True])  # slot 2 outside the window
-    ids, n = hierarchical.window_slots(inside & (st.count > 0))
-    b = hierarchical.sample_hierarchical(jax.random.PRNGKey(0), st, ids, n, nv=4000, np_=9, nt=10)
-    slots_b, mask, labels = np.asarray(b.slots), np.asarray(b.mask), np.asarray(b.labels)
-    assert set(slots_b.tolist()) == {0, 1, 4, 5}  # window blocks with pairs, and all of them
-    for s in {0, 1, 4, 5}:
-        per = mask[slots_b == s].sum(1)
-        assert np.all(per == (9 if counts[s] >= 10 else 3))
-        lab = labels[slots_b == s][mask[slots_b == s]]
-        assert np.all((lab >= s * 100) & (lab < s * 100 + counts[s]))
-    # Stage 1 is uniform over voxels, not over pairs: block 1 (3 pairs) is drawn as often as block 0 (30).
-    freq = np.bincount(slots_b, minlength=S)[[0, 1, 4, 5]] / 4000
-    np.testing.assert_allclose(freq, 0.25, atol=0.04)
-    u = hierarchical.sample_uniform(jax.random.PRNGKey(1), st, ids, n, batch=20000)
-    share0 = (np.asarray(u.slots) == 0).mean()
-    assert abs(share0 - 30 / 62) < 0.03  # uniform over pairs: block 0 holds 30 of the 62 window pairs
-
-
-def test_sparse_adam_equals_dense_adam_on_touched_rows_and_leaves_others():
-    import optax
-
-    from jaxmap.n3.mapper import VALUE, _pack, sparse_adam
-
-    rng = np.random.default_rng(4)
-    R, D = 12, 3
-    init = jnp.asarray(rng.normal(size=(R, D)), jnp.float32)
-    packed, cnt = _pack(init), jnp.zeros((), jnp.int32)
-    tx = optax.adam(0.01)
-    dense, st = init, tx.init(init)
-    touched = np.arange(8)  # rows 8..11 are never touched
-    for step in range(3):
-        rows = rng.choice(touched, size=20).astype(np.int32)
-        rows[:8] = touched  # every touched row appears at least once per step: dense == lazy there
-        rows[-2:] = -1      # padding
-        g = rng.normal(size=(20, D)).astype(np.float32)
-        packed, cnt = sparse_adam(packed, cnt, jnp.asarray(rows), jnp.asarray(g), lr=0.01)
-        gd = np.zeros((R, D), np.float32)
-        np.add.at(gd, rows[rows >= 0], g[rows >= 0])
-        upd, st = tx.update(jnp.asarray(gd), st, dense)
-        dense = optax.apply_updates(dense, upd)
-    np.testing.assert_allclose(np.asarray(packed[:8, VALUE]), np.asarray(dense)[:8], rtol=1e-5, atol=1e-6)
-    np.testing.assert_array_equal(np.asarray(packed[8:, VALUE]), np.asarray(init)[8:])
-    np.testing.assert_array_equal(np.asarray(packed[:, 3]), 0.0)  # accumulator cleared
+# The store, the hierarchical sampler and sparse Adam are tested in test_n3_core.py.
 
 
 def test_analytic_weight_gradients_equal_autodiff():
@@ -224,21 +114,3 @@ def test_analytic_weight_gradients_equal_autodiff():
     jac = jax.vmap(jax.jacfwd(lambda p, v: gf.corner_weights(p[None], v[None], 0.2, 3)[0]))(
         jnp.asarray(pts), jnp.asarray(vox))
     np.testing.assert_allclose(dw, jac, rtol=1e-4, atol=1e-4)
-
-
-def test_explicit_mlp_gradient_equals_autodiff_and_so_does_its_parameter_gradient():
-    from jaxmap.n3.decoder import init_decoder, mlp_with_input_grad
-
-    module, params = init_decoder(jax.random.PRNGKey(0), 8, 32, 2)
-    f = jax.random.normal(jax.random.PRNGKey(1), (100, 8))
-    sdf, g = mlp_with_input_grad(params, f)
-    np.testing.assert_allclose(sdf, module.apply(params, f), rtol=1e-5, atol=1e-6)
-    g_ref = jax.vmap(jax.grad(lambda x: module.apply(params, x[None])[0]))(f)
-    np.testing.assert_allclose(g, g_ref, rtol=1e-5, atol=1e-6)
-    # The eikonal-style second-order parameter gradient agrees too.
-    def eik(p, explicit):
-        gg = mlp_with_input_grad(p, f)[1] if explicit else jax.vmap(jax.grad(lambda x: module.apply(p, x[None])[0]))(f)
-        return jnp.sum(jnp.sum(gg**2, -1))
-    a, b = jax.grad(eik)(params, True), jax.grad(eik)(params, False)
-    for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
-        np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-5)

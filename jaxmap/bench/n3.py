@@ -1,16 +1,27 @@
-"""`jaxmap bench n3`: jaxmap N3 against the TSDF baseline and the N3 paper's ablations, one table.
+"""`jaxmap bench n3`: what a user waits for, and what the map is worth, on the default city.
 
-For each variant: median per-frame time after the first (compiling) frames, split into
-preprocess / sampling / training; peak RSS of the process; the training-pair store size (max, and
-whether it stopped growing once the window was full); and Acc / Comp / C-L1 / Comp.ratio / F-score
-at 10 cm, evaluated within the 20 m the mapper sees. Everything is written to OUT/bench.json and
-each variant's run directory under OUT/.
+Speed (each run a separate `jaxmap map` process, so the compile cache and the peak RSS are its own):
+  cold   an empty XLA compile cache: wall-clock of the mapping loop / frames, compilation included
+  warm   the same run again, the cache filled by the cold run
+For each: median and p95 per-frame time, the worst frame after the 10th against 2x the median,
+compile time and count, peak RSS of the mapping (getrusage, before meshing) and of the whole process.
+
+Quality: jaxmap against the TSDF baseline and the N3 paper's ablations (Table III), one row each:
+Acc / Comp / C-L1 / Comp. ratio / F-score at 10 cm within the 20 m the mapper sees.
+
+`--long`: the 1.1 km drive of `jaxmap synth city --long` (1025 frames): per-frame medians over
+frames 100-200 and 900-1000, and the store's pairs and the feature rows every 100 frames (the
+store must stay flat once the window is full; features grow only with the explored area).
+
+Everything goes to OUT/bench.json (and OUT/long.json); each run directory is under OUT/.
 """
 from __future__ import annotations
 
 import json
 import os
-import resource
+import shutil
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -26,10 +37,6 @@ VARIANTS = {
 COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
 
 
-def _peak_rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-
-
 def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bool, float]:
     """Did the store stop growing? Compares the max of the last `tail` fraction of frames with the
     max of the frames before it: growth ratio <= 1.25 counts as flat (the window is full)."""
@@ -41,82 +48,187 @@ def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bo
     return ratio <= 1.25, float(ratio)
 
 
+def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str], evaluate: bool = True) -> dict:
+    """`jaxmap map configs/city.yaml` in a fresh process with its own compile cache; its summary."""
+    from jaxmap.n3.run import city_config_path
+
+    env = dict(os.environ, JAXMAP_CACHE_DIR=cache_dir)
+    cmd = [sys.executable, "-m", "jaxmap.cli", "map", city_config_path(), "--data", data, "--out", out,
+           "--no-progress"] + [a for o in overrides for a in ("--set", o)]
+    if not evaluate:
+        cmd += ["--no-mesh"]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"[bench] {' '.join(cmd)} failed:\n{res.stderr[-3000:]}")
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    summary["process_s"] = time.perf_counter() - t0
+    with open(os.path.join(out, "timing.json")) as f:
+        summary["frames"] = json.load(f)["frames"]
+    return summary
+
+
+def speed_row(s: dict) -> dict:
+    frames = s["frames"]
+    tot = np.array([r["total_s"] for r in frames])
+    med = float(np.median(tot[1:])) if len(tot) > 1 else float(tot[0])
+    late = tot[10:] if len(tot) > 10 else tot[-1:]
+    return {"wall_s": s["wall_s"], "s_per_frame": s["wall_s_per_frame"], "median_s": med,
+            "p95_s": float(np.percentile(tot[1:], 95)) if len(tot) > 1 else med,
+            "worst_after_10_over_median": float(late.max() / med), "frames_over_2x_median_after_10": int((late > 2 * med).sum()),
+            "compile_s": s.get("compile_s", float("nan")), "compiles": s.get("compiles", -1),
+            "peak_rss_mapping_mb": s.get("peak_rss_mapping_mb", float("nan")), "peak_rss_mb": s.get("peak_rss_mb", float("nan")),
+            "frames": len(frames)}
+
+
+def print_speed(rows: dict) -> None:
+    head = (f"{'run':<6}{'frames':>7}{'wall s':>8}{'s/frame':>8}{'median':>8}{'p95':>7}{'worst/med':>10}"
+            f"{'>2x med':>8}{'compile s':>10}{'#':>3}{'RSS map MB':>11}{'RSS all MB':>11}")
+    print(head)
+    print("-" * len(head))
+    for name, r in rows.items():
+        print(f"{name:<6}{r['frames']:>7d}{r['wall_s']:>8.1f}{r['s_per_frame']:>8.3f}{r['median_s']:>8.3f}{r['p95_s']:>7.3f}"
+              f"{r['worst_after_10_over_median']:>10.2f}{r['frames_over_2x_median_after_10']:>8d}{r['compile_s']:>10.1f}"
+              f"{r['compiles']:>3d}{r['peak_rss_mapping_mb']:>11.0f}{r['peak_rss_mb']:>11.0f}")
+
+
 def main(args) -> int:
-    from jaxmap.baselines.tsdf import tsdf_from_sequence
     from jaxmap.bench import base_overrides
-    from jaxmap.config import load_config
-    from jaxmap.metrics import evaluate_mesh_file
-    from jaxmap.n3.run import _frame_selection, city_config_path, map_sequence
     from jaxmap.synth.city import generate_city
 
+    if getattr(args, "long", False):
+        return main_long(args)
     data, out = args.data, args.out
     os.makedirs(out, exist_ok=True)
     if not os.path.isfile(os.path.join(data, "poses.txt")):
         print(f"[bench] synthesizing the default city into {data}")
         generate_city(data, seed=0)
-    base = base_overrides(args, data)
+    base = base_overrides(args, data)[1:]  # the data path goes on the command line
     names = list(VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
-    cfg0 = load_config(city_config_path(), base)
-    results = {}
+    for name in names:
+        if name not in VARIANTS and name not in ("tsdf", "speed"):
+            raise SystemExit(f"unknown variant {name!r}; choose from speed, tsdf, {', '.join(VARIANTS)}")
+    results, speed = {}, {}
 
+    if not args.only or "speed" in names or "jaxmap" in names:
+        cache = os.path.join(out, "xla_cache")
+        shutil.rmtree(cache, ignore_errors=True)
+        for run in ("cold", "warm"):
+            print(f"[bench] {run} run: jaxmap map on {data} (compile cache {cache})", flush=True)
+            s = map_in_subprocess(data, os.path.join(out, f"jaxmap_{run}"), cache, base)
+            speed[run] = speed_row(s)
+            if run == "cold":
+                results["jaxmap"] = _quality_row(s)
+        print()
+        print_speed(speed)
+        print()
     if not args.only or "tsdf" in names:
-        t0 = time.perf_counter()
-        mesh_path = os.path.join(out, "tsdf.ply")
-        info = tsdf_from_sequence(data, voxel_m=cfg0.grid.leaf_vox_size, out_mesh=mesh_path,
-                                  max_range_m=cfg0.preprocess.max_range_m, min_range_m=cfg0.preprocess.min_range_m,
-                                  mesh_res_m=cfg0.mesh.resolution_m, end_frame=cfg0.data.end_frame, progress=True)
-        secs = time.perf_counter() - t0
-        m = evaluate_mesh_file(mesh_path, data, threshold_m=cfg0.eval.threshold_m,
-                               cull_distance_m=cfg0.eval.cull_distance_m, eval_radius_m=cfg0.eval.eval_radius_m,
-                               n_samples=cfg0.eval.n_samples, **_frame_selection(cfg0))
-        n_frames = info.get("frames", 1) or 1
-        results["tsdf"] = {"metrics": m, "median_total_s": secs / n_frames, "median_preprocess_s": float("nan"),
-                           "median_sampling_s": float("nan"), "median_training_s": float("nan"),
-                           "max_store_pairs": 0, "store_flat": True, "peak_rss_mb": _peak_rss_mb()}
+        results["tsdf"] = _tsdf_row(data, out, base)
         _print_row("tsdf", results["tsdf"])
     for name in names:
-        if name == "tsdf":
+        if name in ("tsdf", "speed", "jaxmap"):
             continue
-        if name not in VARIANTS:
-            raise SystemExit(f"unknown variant {name!r}; choose from tsdf, {', '.join(VARIANTS)}")
-        cfg = load_config(city_config_path(), base + VARIANTS[name] + [f"output={os.path.join(out, name)}"])
-        summary = map_sequence(cfg, cfg.output, progress=True)
-        with open(os.path.join(cfg.output, "timing.json")) as f:
-            frames = json.load(f)["frames"]
-        pairs = [r["store_pairs"] for r in frames]
-        flat, ratio = store_flat_after_full(pairs)
-        results[name] = {**summary, "store_flat": flat, "store_growth_ratio": ratio,
-                         "store_mb_max": max(r["store_bytes"] for r in frames) / 2**20,
-                         "peak_rss_mb": _peak_rss_mb()}
+        cache = os.path.join(out, "xla_cache")
+        s = map_in_subprocess(data, os.path.join(out, name), cache, base + VARIANTS[name])
+        results[name] = _quality_row(s)
         _print_row(name, results[name])
     with open(os.path.join(out, "bench.json"), "w") as f:
-        json.dump(results, f, indent=1, default=float)
+        json.dump({"speed": speed, "quality": results}, f, indent=1, default=float)
     print()
     print_table(results)
     if "tsdf" in results and "jaxmap" in results:
         a, b = results["jaxmap"]["metrics"], results["tsdf"]["metrics"]
-        print(f"\nC-L1 jaxmap / TSDF = {a['chamfer_l1_cm'] / b['chamfer_l1_cm']:.3f} "
-              f"({100 * (1 - a['chamfer_l1_cm'] / b['chamfer_l1_cm']):.1f} % lower); "
+        print(f"\nC-L1 jaxmap / TSDF = {a['chamfer_l1_cm'] / b['chamfer_l1_cm']:.3f}; "
               f"F-score jaxmap {a['f_score']:.2f} % vs TSDF {b['f_score']:.2f} %")
     return 0
+
+
+def _quality_row(s: dict) -> dict:
+    frames = s["frames"]
+    pairs = [r["store_pairs"] for r in frames]
+    flat, ratio = store_flat_after_full(pairs)
+    return {"metrics": s.get("metrics", {}), "s_per_frame": s["wall_s_per_frame"],
+            "median_total_s": s["median_total_s"], "store_flat": flat, "store_growth_ratio": ratio,
+            "store_mb_max": max(r["store_bytes"] for r in frames) / 2**20, "max_store_pairs": max(pairs),
+            "peak_rss_mb": s.get("peak_rss_mapping_mb", float("nan"))}
+
+
+def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
+    from jaxmap.baselines.tsdf import tsdf_from_sequence
+    from jaxmap.config import load_config
+    from jaxmap.metrics import evaluate_mesh_file
+    from jaxmap.n3.run import _frame_selection, city_config_path
+
+    cfg0 = load_config(city_config_path(), [f"data.path={data}"] + base)
+    t0 = time.perf_counter()
+    mesh_path = os.path.join(out, "tsdf.ply")
+    info = tsdf_from_sequence(data, voxel_m=cfg0.grid.leaf_vox_size, out_mesh=mesh_path,
+                              max_range_m=cfg0.preprocess.max_range_m, min_range_m=cfg0.preprocess.min_range_m,
+                              mesh_res_m=cfg0.mesh.resolution_m, end_frame=cfg0.data.end_frame, progress=True)
+    secs = time.perf_counter() - t0
+    m = evaluate_mesh_file(mesh_path, data, threshold_m=cfg0.eval.threshold_m,
+                           cull_distance_m=cfg0.eval.cull_distance_m, eval_radius_m=cfg0.eval.eval_radius_m,
+                           n_samples=cfg0.eval.n_samples, **_frame_selection(cfg0))
+    n = info.get("frames", 1) or 1
+    return {"metrics": m, "s_per_frame": secs / n, "median_total_s": float("nan"), "store_flat": True,
+            "store_mb_max": 0.0, "max_store_pairs": 0, "peak_rss_mb": float("nan")}
 
 
 def _print_row(name, r):
     m = r.get("metrics", {})
     print(f"[bench] {name}: " + ", ".join(f"{k}={m.get(k, float('nan')):.2f}" for k in COLS)
-          + f", {r['median_total_s']:.3f} s/frame")
+          + f", {r['s_per_frame']:.3f} s/frame")
 
 
 def print_table(results: dict) -> None:
     head = (f"{'variant':<11}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
-            f"{'prep s':>8}{'samp s':>8}{'train s':>8}{'total s':>8}{'store MB':>9}{'flat':>6}{'RSS MB':>8}")
+            f"{'s/frame':>8}{'store MB':>9}{'flat':>6}{'RSS MB':>8}")
     print(head)
     print("-" * len(head))
     for name, r in results.items():
         m = r.get("metrics", {})
         print(f"{name:<11}{m.get('accuracy_cm', np.nan):>8.2f}{m.get('completion_cm', np.nan):>8.2f}"
               f"{m.get('chamfer_l1_cm', np.nan):>8.2f}{m.get('completion_ratio', np.nan):>7.2f}"
-              f"{m.get('f_score', np.nan):>7.2f}{r.get('median_preprocess_s', np.nan):>8.3f}"
-              f"{r.get('median_sampling_s', np.nan):>8.3f}{r.get('median_training_s', np.nan):>8.3f}"
-              f"{r.get('median_total_s', np.nan):>8.3f}{r.get('store_mb_max', 0.0):>9.1f}"
+              f"{m.get('f_score', np.nan):>7.2f}{r.get('s_per_frame', np.nan):>8.3f}{r.get('store_mb_max', 0.0):>9.1f}"
               f"{str(r.get('store_flat', '')):>6}{r.get('peak_rss_mb', np.nan):>8.0f}")
+
+
+def main_long(args) -> int:
+    """The long drive: flat per-frame cost and a store bounded by the window."""
+    from jaxmap.bench import base_overrides
+    from jaxmap.synth.city import generate_city
+
+    data = args.data if args.data != "data/city_bench" else "data/city_long"
+    out = args.out
+    os.makedirs(out, exist_ok=True)
+    if not os.path.isfile(os.path.join(data, "poses.txt")):
+        print(f"[bench] synthesizing the long drive into {data}")
+        generate_city(data, seed=0, long=True)
+    base = base_overrides(args, data)[1:] + ["checkpoint_every=100000"]
+    cache = os.path.join(out, "xla_cache")
+    print(f"[bench] long drive: jaxmap map on {data}", flush=True)
+    s = map_in_subprocess(data, os.path.join(out, "long"), cache, base, evaluate=False)
+    frames = s["frames"]
+    tot = np.array([r["total_s"] for r in frames])
+    n = len(tot)
+    a = tot[100:200] if n >= 200 else tot[n // 10: n // 5]
+    b = tot[900:1000] if n >= 1000 else tot[-max(n // 10, 1):]
+    ma, mb = float(np.median(a)), float(np.median(b))
+    print(f"\nframes {n}, wall {s['wall_s']:.0f} s = {s['wall_s_per_frame']:.3f} s/frame (compilation included: "
+          f"{s.get('compile_s', float('nan')):.1f} s in {s.get('compiles', -1)} compiles), peak RSS "
+          f"{s.get('peak_rss_mapping_mb', float('nan')):.0f} MB")
+    print(f"median s/frame, frames 100-200: {ma:.3f}; frames 900-1000: {mb:.3f}; ratio {mb / ma:.3f}")
+    print(f"\n{'frame':>6}{'store pairs':>13}{'store MB':>10}{'window vox':>11}{'leaf voxels':>12}{'feature rows':>13}")
+    for r in frames[::100] + [frames[-1]]:
+        print(f"{r['frame']:>6d}{r['store_pairs']:>13d}{r['store_bytes'] / 2**20:>10.1f}{r['window_voxels']:>11d}"
+              f"{r['leaf_voxels']:>12d}{r['feature_rows']:>13d}")
+    pairs = [r["store_pairs"] for r in frames]
+    flat, ratio = store_flat_after_full(pairs)
+    print(f"store flat once the window is full: {flat} (last half / first half max = {ratio:.2f})")
+    with open(os.path.join(out, "long.json"), "w") as f:
+        json.dump({"median_100_200": ma, "median_900_1000": mb, "ratio": mb / ma, "wall_s": s["wall_s"],
+                   "s_per_frame": s["wall_s_per_frame"], "compile_s": s.get("compile_s"),
+                   "peak_rss_mapping_mb": s.get("peak_rss_mapping_mb"), "store_flat": flat,
+                   "frames": [{k: r[k] for k in ("frame", "total_s", "store_pairs", "leaf_voxels", "feature_rows")}
+                              for r in frames]}, f, indent=1)
+    return 0

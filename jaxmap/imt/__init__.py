@@ -5,7 +5,7 @@ The prior (`load_prior()`) turns the points and normals around a voxel into a la
 SDF mean and standard deviation (voxel units) that are exactly invariant to a common rotation.
 `rotate(tree, R)` rotates every `Vec`/`Jac`-marked leaf of a pytree (see `jaxmap.imt.vn`).
 
-The latent map (DESIGN.md section 5): `encode_frame` (a frame's local map on the world grid),
+The latent map (README: Architecture): `encode_frame` (a frame's local map on the world grid),
 `fuse` / `remove` (eq. 11), `transform` (eqs. 3-10, onto the global grid), `remap` (move the
 keyframes whose pose changed), `mesh` / `query` (decoded SDF, marching cubes); `ImtMapper` runs them
 over a sequence (`jaxmap imt`).

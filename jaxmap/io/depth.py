@@ -115,6 +115,8 @@ class DepthSequence(Sequence):
     Extra attributes: depth_paths, intrinsics (fx, fy, cx, cy), depth_scale (units per metre).
     """
 
+    thread_safe_frames = True  # each frame is its own file: frames may be read from several threads
+
     kind = "depth"
 
     def __init__(self, data_dir, begin_frame: int = 0, end_frame: int = -1, every_frame: int = 1):

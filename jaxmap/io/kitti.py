@@ -270,6 +270,8 @@ class KittiSequence(Sequence):
     poses_cam ([M,4,4] the selected lines of poses.txt as written).
     """
 
+    thread_safe_frames = True  # each frame is its own file: frames may be read from several threads
+
     kind = "kitti"
 
     def __init__(self, data_dir, begin_frame: int = 0, end_frame: int = -1, every_frame: int = 1):

@@ -6,7 +6,8 @@ import jax.numpy as jnp
 
 
 class SDFDecoder(nn.Module):
-    """features [..., D] -> sdf [...] in metres (positive in free space).
+    """features [..., D] -> sdf [...] in metres (positive in free space). The parameters are used by
+    `jaxmap.n3.field.mlp`, the same network written for one feature vector.
 
     `hidden_layers` fully connected layers of `hidden_dim` with ReLU, then a linear output
     (N3 paper: 2 x 32).
@@ -28,27 +29,3 @@ def init_decoder(key, feature_dim: int, hidden_dim: int, hidden_layers: int):
     module = SDFDecoder(hidden_dim, hidden_layers)
     params = module.init(key, jnp.zeros((1, feature_dim), jnp.float32))
     return module, params
-
-
-def mlp_with_input_grad(params, feat):
-    """The decoder's forward pass and its gradient w.r.t. the input, written out explicitly.
-
-    params: the flax params of `SDFDecoder`; feat: [..., D]. Returns (sdf [...], d sdf / d feat [..., D]).
-    Equal to `SDFDecoder.apply` and its `jax.grad`; written by hand because the eikonal loss
-    differentiates this gradient again, and one reverse pass over these few matmuls is much cheaper
-    than autodiff of autodiff.
-    """
-    layers = params["params"]
-    names = sorted(layers, key=lambda k: int(k.split("_")[-1]))
-    h, masks = feat, []
-    for name in names[:-1]:
-        z = h @ layers[name]["kernel"] + layers[name]["bias"]
-        m = z > 0
-        h = jnp.where(m, z, 0.0)
-        masks.append(m)
-    out = layers[names[-1]]
-    sdf = (h @ out["kernel"] + out["bias"])[..., 0]
-    g = jnp.broadcast_to(out["kernel"][:, 0], h.shape)
-    for name, m in zip(reversed(names[:-1]), reversed(masks)):
-        g = jnp.where(m, g, 0.0) @ layers[name]["kernel"].T
-    return sdf, g

@@ -8,6 +8,7 @@ pairs in the window, K = 1.
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -38,18 +39,30 @@ def _pair_mask(store: PairStore, slots, j, frame, keyframes):
     return store.frame[slots[:, None], j] > frame - keyframes
 
 
+def draw_block_pairs(u, count, *, nt: int, block_size: int):
+    """Stage 2 for ONE block (lifted over the stage-1 blocks with `jax.vmap`).
+
+    u: [Np] uniform draws in [0, 1) for this block; count: [] int32 pairs the block holds.
+    Returns (j [Np] int32 pair indices, uniform in [0, count), with replacement; take [Np] bool:
+    all Np count if the block holds at least Nt pairs, else only the first Np // 3, none if empty).
+    """
+    np_ = u.shape[0]
+    j = jnp.clip(jnp.floor(u * count).astype(jnp.int32), 0, block_size - 1)
+    n_take = jnp.where(count >= nt, np_, max(np_ // 3, 1))
+    take = (jnp.arange(np_) < n_take) & (count > 0)
+    return j, take
+
+
 def sample_hierarchical(key, store: PairStore, ids, n, *, nv: int, np_: int, nt: int,
                         frame=0, keyframes: int = 0) -> Batch:
     """Stage 1: Nv blocks uniformly (with replacement) among the n window blocks `ids[:n]`.
-    Stage 2: Np pairs uniformly within each; blocks with < Nt pairs contribute Np // 3."""
+    Stage 2: `draw_block_pairs` per block under `vmap` (its uniforms drawn in one [Nv, Np] call)."""
     kv, kp = jax.random.split(key)
     pick = jax.random.randint(kv, (nv,), 0, jnp.maximum(n, 1))
     slots = ids[pick]                                                    # [Nv]
-    cnt = store.count[slots]                                             # [Nv]
-    j = jnp.floor(jax.random.uniform(kp, (nv, np_)) * cnt[:, None]).astype(jnp.int32)
-    j = jnp.clip(j, 0, store.block_size - 1)
-    take = jnp.where(cnt >= nt, np_, max(np_ // 3, 1))
-    mask = (jnp.arange(np_)[None, :] < take[:, None]) & (cnt[:, None] > 0) & (n > 0)
+    draw = functools.partial(draw_block_pairs, nt=nt, block_size=store.block_size)
+    j, mask = jax.vmap(draw)(jax.random.uniform(kp, (nv, np_)), store.count[slots])   # [Nv, Np] each
+    mask &= (n > 0)
     mask &= _pair_mask(store, slots, j, frame, keyframes)
     rows = store.pairs[slots[:, None], j]                                # [Nv, Np, 4]
     return Batch(slots, rows[..., :3], rows[..., 3], store.surface[slots[:, None], j], mask)

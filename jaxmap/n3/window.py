@@ -11,9 +11,13 @@ pairs of the last N frames.
 """
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import flax.struct
 import jax
 import jax.numpy as jnp
+
+from jaxmap.grid.hashing import nonzero_fixed, prefix_sum
 
 WINDOW_MODES = ("voxel", "replay", "keyframe")
 
@@ -29,6 +33,8 @@ class PairStore:
     coord: jax.Array          # [S, 3] int32: leaf-voxel coordinate of the block
     last_frame: jax.Array     # [S] int32: last frame that wrote into the block
     slot_of_voxel: jax.Array  # [V] int32: slot of each voxel row, -1 = none
+    window_ids: jax.Array     # [S] int32: the window's blocks that hold pairs, `window_ids[:window_n]`
+    window_n: jax.Array       # [] int32  (as of the last `update`; what training samples from)
 
     @property
     def n_slots(self) -> int:
@@ -51,6 +57,8 @@ def create(n_slots: int, pairs_per_voxel: int, n_voxel_rows: int) -> PairStore:
         coord=jnp.zeros((s, 3), jnp.int32),
         last_frame=jnp.full((s,), -1, jnp.int32),
         slot_of_voxel=jnp.full((n_voxel_rows,), -1, jnp.int32),
+        window_ids=jnp.zeros((s,), jnp.int32),
+        window_n=jnp.zeros((), jnp.int32),
     )
 
 
@@ -69,6 +77,7 @@ def grow(store: PairStore, n_slots: int | None = None, n_voxel_rows: int | None 
         head=put(fresh.head, store.head), voxel_of_slot=put(fresh.voxel_of_slot, store.voxel_of_slot),
         coord=put(fresh.coord, store.coord), last_frame=put(fresh.last_frame, store.last_frame),
         slot_of_voxel=put(fresh.slot_of_voxel, store.slot_of_voxel),
+        window_ids=put(fresh.window_ids, store.window_ids), window_n=store.window_n,
     ) if (s_new, v_new) != (s_old, v_old) else store
 
 
@@ -76,7 +85,11 @@ def in_window(store: PairStore, center_vox, radius_vox: int, *, mode: str, frame
     """[S] bool: slots inside the current window (and in use)."""
     used = store.voxel_of_slot >= 0
     if mode == "voxel":
-        inside = jnp.all(jnp.abs(store.coord - center_vox) <= radius_vox, axis=-1)
+        # A range test, not |coord - center| <= r: XLA's GPU backend (jax 0.11.2, H100) miscompiles
+        # `all(abs(int32 difference) <= r, axis=-1)` on large arrays (15 % of random rows wrong;
+        # tests/test_n3_core.py checks this formulation against numpy on whatever backend runs it).
+        lo, hi = center_vox - radius_vox, center_vox + radius_vox
+        inside = jnp.all((store.coord >= lo) & (store.coord <= hi), axis=-1)
     elif mode == "replay":
         inside = jnp.ones_like(used)
     elif mode == "keyframe":
@@ -86,83 +99,132 @@ def in_window(store: PairStore, center_vox, radius_vox: int, *, mode: str, frame
     return used & inside
 
 
-def release(store: PairStore, keep) -> PairStore:
-    """Free the slots where `keep` is False. keep: [S] bool."""
-    drop = (store.voxel_of_slot >= 0) & ~keep
-    v = store.slot_of_voxel.shape[0]
-    vox = jnp.where(drop, store.voxel_of_slot, v)   # out of range -> dropped by the scatter
-    return store.replace(
-        slot_of_voxel=store.slot_of_voxel.at[vox].set(-1, mode="drop"),
-        voxel_of_slot=jnp.where(drop, -1, store.voxel_of_slot),
-        count=jnp.where(drop, 0, store.count),
-        head=jnp.where(drop, 0, store.head),
-        frame=jnp.where(drop[:, None], -1, store.frame),
-        last_frame=jnp.where(drop, -1, store.last_frame),
-    )
+class StoreStats(NamedTuple):
+    """What `update` reports to the host (a few scalars)."""
+
+    ok: jax.Array             # [] bool: the update was applied (False: nothing changed; grow and retry)
+    blocks_needed: jax.Array  # [] int32: voxels of the batch that needed a new block
+    blocks_free: jax.Array    # [] int32: free blocks once the window had slid
 
 
-def assign_slots(store: PairStore, voxel_rows, coords):
-    """Give every voxel row without a block a free slot.
+def ranks_within_slot(slots, n_slots: int):
+    """Rank of each item among the earlier items of the same slot, and the count per slot.
 
-    voxel_rows: [M] int32 (-1 = no voxel, ignored); coords: [M,3] int32 leaf-voxel coordinates.
-    Returns (store, slots [M] int32 (-1 where voxel_rows is -1), overflow [] bool). On overflow
-    the store is returned unchanged in the overflowing part; the caller grows and retries.
+    slots: [M] int32 in [0, n_slots] (n_slots = no slot). Returns (rank [M] int32, n_in [n_slots]).
+    Equal to a stable argsort by slot, without one: XLA's CPU sort of an index payload costs ~4x a
+    sort of bare uint32 keys, so the items are cut into chunks small enough that
+    `slot << b | index_in_chunk` fits 32 bits, each chunk's packed keys are sorted alone (ranks
+    within the chunk from run starts), and a per-chunk histogram adds the counts of earlier chunks.
     """
-    v = store.slot_of_voxel.shape[0]
-    m = voxel_rows.shape[0]
-    ok = voxel_rows >= 0
-    rows_or_oob = jnp.where(ok, voxel_rows, v)
-    touched = jnp.zeros((v,), bool).at[rows_or_oob].set(True, mode="drop")
-    need = touched & (store.slot_of_voxel < 0)
-    coord_of_row = jnp.zeros((v, 3), jnp.int32).at[rows_or_oob].set(coords, mode="drop")
-    k = min(m, v)
-    need_rows = jnp.nonzero(need, size=k, fill_value=v)[0]                    # [k]
-    free_slots = jnp.nonzero(store.voxel_of_slot < 0, size=k, fill_value=store.n_slots)[0]
-    n_need = need.sum()
-    n_free = (store.voxel_of_slot < 0).sum()
-    overflow = n_need > n_free
-    pair_ok = (need_rows < v) & (free_slots < store.n_slots)
-    nr = jnp.where(pair_ok, need_rows, v)
-    fs = jnp.where(pair_ok, free_slots, store.n_slots)
-    store = store.replace(
-        slot_of_voxel=store.slot_of_voxel.at[nr].set(fs.astype(jnp.int32), mode="drop"),
-        voxel_of_slot=store.voxel_of_slot.at[fs].set(nr.astype(jnp.int32), mode="drop"),
-        coord=store.coord.at[fs].set(coord_of_row[jnp.minimum(nr, v - 1)], mode="drop"),
-        count=store.count.at[fs].set(0, mode="drop"),
-        head=store.head.at[fs].set(0, mode="drop"),
-    )
-    slots = jnp.where(ok, store.slot_of_voxel[jnp.minimum(rows_or_oob, v - 1)], -1)
-    return store, slots, overflow
+    m = slots.shape[0]
+    slot_bits = int(n_slots).bit_length()
+    if slot_bits > 20:  # chunks would get too small: sort with a payload instead
+        order = jnp.argsort(slots, stable=True)
+        ks = slots[order]
+        i = jnp.arange(m, dtype=jnp.int32)
+        first = jnp.concatenate([jnp.ones((1,), bool), ks[1:] != ks[:-1]])
+        r = i - jax.lax.cummax(jnp.where(first, i, 0))
+        n_in = jnp.zeros((n_slots + 1,), jnp.int32).at[slots].add(1)[:n_slots]
+        return jnp.zeros((m,), jnp.int32).at[order].set(r), n_in
+    b = 32 - slot_bits
+    c = min(1 << b, m)
+    n_chunks = -(-m // c)
+    pad = n_chunks * c - m
+    sl = jnp.concatenate([slots, jnp.full((pad,), n_slots, slots.dtype)]).reshape(n_chunks, c)
+    local = jnp.arange(c, dtype=jnp.uint32)
+    keys = jnp.sort((sl.astype(jnp.uint32) << b) | local, axis=-1)              # [n_chunks, c]
+    ks = (keys >> b).astype(jnp.int32)
+    low = jnp.uint32((1 << b) - 1)
+    at = (keys & low).astype(jnp.int32)                                         # index within the chunk
+    # Position in the sorted chunk minus the start of the slot's run (a binary search; XLA's CPU
+    # cumulative max/sum lower to slow reduce-windows).
+    start = jax.vmap(jnp.searchsorted)(keys, keys & ~low)
+    r_sorted = jnp.arange(c, dtype=jnp.int32) - start.astype(jnp.int32)
+    chunk = jnp.arange(n_chunks, dtype=jnp.int32)[:, None]
+    hist = jnp.zeros((n_chunks, n_slots + 1), jnp.int32).at[chunk, sl].add(1)   # [n_chunks, S+1]
+    before = [jnp.zeros((n_slots + 1,), jnp.int32)]                             # earlier chunks' counts
+    for j in range(n_chunks - 1):
+        before.append(before[-1] + hist[j])
+    r_sorted = r_sorted + jnp.stack(before)[chunk, ks]
+    rank = jnp.zeros((n_chunks, c), jnp.int32).at[chunk, at].set(r_sorted).reshape(-1)[:m]
+    return rank, hist.sum(0)[:n_slots]
 
 
-def write_pairs(store: PairStore, slots, points, labels, surface, frame) -> PairStore:
-    """Append pairs to their blocks' ring buffers (only the newest P of a block survive).
+def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame, center_vox, allowed=True, *,
+           radius_vox: int, mode: str, keyframes: int):
+    """Slide the window, give a block to every voxel of the batch that has none, append the pairs.
 
-    slots: [M] int32 (-1 = skip); points: [M,3]; labels: [M]; surface: [M] bool; frame: [] int32.
+    voxel_rows: [M] int32 voxel row of each pair (-1 = drop the pair); coords: [M, 3] int32 leaf-voxel
+    coordinates; points: [M, 3] float32 map frame; labels: [M]; surface: [M] bool; frame: [] int32;
+    center_vox: [3] int32 leaf voxel of the sensor; allowed: [] bool, False makes it a no-op.
+
+    All or nothing: if more voxels need a block than there are free blocks after the slide, or
+    `allowed` is False, the store comes back unchanged with `ok = False` (the caller grows the store
+    outside jit and retries; no pair is ever dropped for capacity). A block keeps the newest P pairs
+    its voxel received (oldest overwritten; within a frame, later pairs of the batch are newer).
+
+    Returns (store, ids [S] int32, n [] int32: the window blocks that hold pairs, `ids[:n]`, StoreStats).
     """
     s, p = store.n_slots, store.block_size
-    m = slots.shape[0]
-    key = jnp.where(slots >= 0, slots, s)
-    order = jnp.argsort(key, stable=True)
-    ks = key[order]
-    idx = jnp.arange(m)
-    first = jnp.concatenate([jnp.ones((1,), bool), ks[1:] != ks[:-1]])
-    start = jax.lax.cummax(jnp.where(first, idx, 0))
-    rank = idx - start                                             # position within the slot's run
-    n_in = jnp.zeros((s + 1,), jnp.int32).at[ks].add(1)[:s]        # pairs arriving per slot
-    ks_c = jnp.minimum(ks, s - 1)
-    keep = (ks < s) & (rank >= n_in[ks_c] - p)
-    pos = (store.head[ks_c] + rank) % p
-    tgt = jnp.where(keep, ks, s)
-    row = jnp.concatenate([points[order], labels[order, None]], axis=-1)
-    return store.replace(
-        pairs=store.pairs.at[tgt, pos].set(row, mode="drop"),
-        surface=store.surface.at[tgt, pos].set(surface[order], mode="drop"),
+    v = store.slot_of_voxel.shape[0]
+    m = voxel_rows.shape[0]
+    idx = jnp.arange(m, dtype=jnp.int32)
+
+    keep = in_window(store, center_vox, radius_vox, mode=mode, frame=frame, keyframes=keyframes)
+    released = (store.voxel_of_slot >= 0) & ~keep                              # [S]
+    free = (store.voxel_of_slot < 0) | released                                # [S] once slid
+
+    real = voxel_rows >= 0
+    row = jnp.where(real, voxel_rows, v)                                       # v: out of range
+    # The first pair of each voxel (a scatter-min of pair indices) speaks for the voxel.
+    first = real & (jnp.full((v,), m, jnp.int32).at[row].min(idx, mode="drop")[jnp.minimum(row, v - 1)] == idx)
+    cur = store.slot_of_voxel[jnp.minimum(row, v - 1)]                         # block held now
+    has = real & (cur >= 0) & ~released[jnp.maximum(cur, 0)]
+    need = first & ~has
+    n_need = jnp.sum(need, dtype=jnp.int32)
+    n_free = jnp.sum(free, dtype=jnp.int32)
+    ok = jnp.asarray(allowed, bool) & (n_need <= n_free)
+
+    # Slide: free the blocks that left the window (their pairs are never read again: count = 0).
+    drop = released & ok
+    slot_of_voxel = store.slot_of_voxel.at[jnp.where(drop, store.voxel_of_slot, v)].set(-1, mode="drop")
+    voxel_of_slot = jnp.where(drop, -1, store.voxel_of_slot)
+    count = jnp.where(drop, 0, store.count)
+    head = jnp.where(drop, 0, store.head)
+    last_frame = jnp.where(drop, -1, store.last_frame)
+    # Assign: voxels needing a block take the free blocks in order of voxel row (the order of the
+    # pre-refactor store, so runs reproduce it to float rounding; tested in test_n3_mapping).
+    k = min(m, s)
+    free_list = nonzero_fixed(free, k, s)                                       # [k]
+    needv = jnp.zeros((v + 1,), jnp.int32).at[row].max(need.astype(jnp.int32))[:v]
+    rank_v = prefix_sum(needv) - 1
+    new_slot = free_list[jnp.clip(rank_v[jnp.minimum(row, v - 1)], 0, k - 1)]
+    take = need & ok
+    tgt_slot = jnp.where(take, new_slot, s)
+    slot_of_voxel = slot_of_voxel.at[jnp.where(take, row, v)].set(new_slot, mode="drop")
+    voxel_of_slot = voxel_of_slot.at[tgt_slot].set(voxel_rows, mode="drop")
+    coord = store.coord.at[tgt_slot].set(coords, mode="drop")
+    count = count.at[tgt_slot].set(0, mode="drop")
+    head = head.at[tgt_slot].set(0, mode="drop")
+    # Append: the r-th of n pairs of a block goes to position head + r; the newest P survive.
+    slot = jnp.where(real & ok, slot_of_voxel[jnp.minimum(row, v - 1)], s)    # [M] s: skip
+    rank, n_in = ranks_within_slot(slot, s)
+    ss = jnp.minimum(slot, s - 1)
+    tgt = jnp.where((slot < s) & (rank >= n_in[ss] - p), slot, s)
+    pos = (head[ss] + rank) % p
+    store = store.replace(
+        pairs=store.pairs.at[tgt, pos].set(jnp.concatenate([points, labels[:, None]], -1), mode="drop"),
+        surface=store.surface.at[tgt, pos].set(surface, mode="drop"),
         frame=store.frame.at[tgt, pos].set(frame, mode="drop"),
-        head=(store.head + n_in) % p,
-        count=jnp.minimum(store.count + n_in, p),
-        last_frame=jnp.where(n_in > 0, frame, store.last_frame),
+        head=(head + n_in) % p,
+        count=jnp.minimum(count + n_in, p),
+        last_frame=jnp.where(n_in > 0, frame, last_frame),
+        voxel_of_slot=voxel_of_slot, slot_of_voxel=slot_of_voxel, coord=coord,
     )
+    inside = in_window(store, center_vox, radius_vox, mode=mode, frame=frame, keyframes=keyframes)
+    inside &= store.count > 0
+    ids = nonzero_fixed(inside, s, 0)
+    return store, ids, inside.sum().astype(jnp.int32), StoreStats(ok, n_need, n_free)
 
 
 def total_pairs(store: PairStore):

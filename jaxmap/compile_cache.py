@@ -1,0 +1,68 @@
+"""The persistent XLA compilation cache, on for every jaxmap user (library and CLI).
+
+Compiled programs are kept in `~/.cache/jaxmap/xla`, so a second run (or a second process) skips
+the compiles. `JAXMAP_CACHE_DIR=/some/dir` moves the cache; `JAXMAP_CACHE_DIR=` (empty) turns it
+off. It is enabled when `jaxmap` is imported; `enable()` can be called again with another path.
+The last measured compile time of each program is kept beside it, so logs can say how long a
+compile will take.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+
+log = logging.getLogger("jaxmap")
+
+DEFAULT_DIR = os.path.join(os.path.expanduser("~"), ".cache", "jaxmap", "xla")
+_TIMES = "jaxmap_compile_seconds.json"
+
+
+def cache_dir() -> str:
+    """The configured cache directory, "" when disabled."""
+    return os.environ.get("JAXMAP_CACHE_DIR", DEFAULT_DIR)
+
+
+def enable(path: str | None = None) -> None:
+    """Point JAX's persistent compilation cache at `path` (default: `cache_dir()`); "" disables."""
+    path = cache_dir() if path is None else path
+    if not path:
+        return
+    import jax
+
+    try:
+        jax.config.update("jax_compilation_cache_dir", path)
+        # Cache every program that takes a noticeable time to compile (the frame program takes 5-20 s).
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    except Exception as e:  # an old jax without the option: run uncached rather than fail
+        log.debug("no persistent compilation cache: %s", e)
+
+
+def estimate(name: str) -> float | None:
+    """Seconds the last compile of program `name` took on this machine, if known."""
+    path = cache_dir()
+    try:
+        with open(os.path.join(path, _TIMES)) as f:
+            return float(json.load(f)[name])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def record(name: str, seconds: float) -> None:
+    path = cache_dir()
+    if not path:
+        return
+    try:
+        os.makedirs(path, exist_ok=True)
+        f = os.path.join(path, _TIMES)
+        times = {}
+        if os.path.isfile(f):
+            with open(f) as fh:
+                times = json.load(fh)
+        # The slowest compile seen: a cache hit takes a second and says nothing about a cold compile.
+        times[name] = round(max(float(seconds), float(times.get(name, 0.0))), 2)
+        with open(f + ".tmp", "w") as fh:
+            json.dump(times, fh)
+        os.replace(f + ".tmp", f)
+    except (OSError, ValueError):
+        pass

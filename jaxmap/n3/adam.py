@@ -1,0 +1,90 @@
+"""Sparse ("lazy") Adam for a feature table, as an optax-style pair of pure functions.
+
+A batch touches a few thousand rows of a table of up to millions; dense Adam would read and write
+every row each step. `sparse_adam(...)` returns `(init, update)` like `optax.scale_by_adam`, but
+`update` takes the rows the batch touched and their gradients, and changes only those rows:
+
+    opt = sparse_adam(b1=0.9, b2=0.999, eps=1e-8)
+    state = opt.init(table)                                  # table: [R, D]
+    table, state = opt.update(table, state, rows, grads, lr)  # rows: [M] int32, grads: [M, D]
+
+A row that a step touches takes exactly dense Adam's step with the summed gradient of its
+occurrences in the batch; rows it does not touch keep their values *and* moments (that is what
+"lazy" means: dense Adam would still decay their moments and move them). Bias correction uses the
+one step count `count` of the table, as the N3 reference code does within a frame. No `jit` inside:
+callers jit.
+"""
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class SparseAdamState(NamedTuple):
+    count: jax.Array    # [] int32: steps taken (bias correction)
+    moments: jax.Array  # [R, 3, D] float32: per row (mu, nu, acc); `acc` is zero between steps, the
+                        # scratch in which a step sums the gradients of duplicate rows without an
+                        # O(R) buffer or a sort. Packed because one gather/scatter of a row's 96
+                        # bytes is ~3x faster on the CPU than three of 32 (measured: 1.4 vs 4.9 ms
+                        # per step of 24k rows); read it through `mu` / `nu`.
+
+    @property
+    def mu(self) -> jax.Array:
+        """[R, D] first moments."""
+        return self.moments[:, _MU]
+
+    @property
+    def nu(self) -> jax.Array:
+        """[R, D] second moments."""
+        return self.moments[:, _NU]
+
+
+_MU, _NU, _ACC = 0, 1, 2
+
+
+class SparseAdam(NamedTuple):
+    init: callable
+    update: callable
+
+
+def sparse_adam(b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> SparseAdam:
+    """Lazy Adam over table rows; the learning rate is an argument of `update` (traced, so changing
+    it never recompiles)."""
+
+    def init(table: jax.Array) -> SparseAdamState:
+        r, d = table.shape
+        return SparseAdamState(count=jnp.zeros((), jnp.int32), moments=jnp.zeros((r, 3, d), table.dtype))
+
+    def update(table: jax.Array, state: SparseAdamState, rows: jax.Array, grads: jax.Array, lr,
+               active=True) -> tuple[jax.Array, SparseAdamState]:
+        """One step on the rows of a batch.
+
+        table: [R, D]; rows: [M] int32 (-1 = padding, duplicates allowed); grads: [M, D];
+        lr: [] learning rate; active: [] bool, False makes the step a no-op (count included).
+        Cost O(M D): one scatter-add, gathers of the touched rows, one scatter-set per array.
+        Every occurrence of a row computes the same new values, so the scatter-sets are
+        deterministic.
+        """
+        r = table.shape[0]
+        idx = jnp.where((rows >= 0) & active, rows, r)                      # r: out of range, dropped
+        moments = state.moments.at[idx, _ACC].add(grads, mode="drop")
+        x = moments.at[idx].get(mode="fill", fill_value=0.0)                # [M, 3, D]
+        g = x[:, _ACC]                                                      # summed per row
+        count = state.count + jnp.asarray(active, jnp.int32)
+        t = count.astype(jnp.float32)
+        mu = b1 * x[:, _MU] + (1.0 - b1) * g
+        nu = b2 * x[:, _NU] + (1.0 - b2) * g * g
+        step = lr * (mu / (1.0 - b1**t)) / (jnp.sqrt(nu / (1.0 - b2**t)) + eps)
+        value = table.at[idx].get(mode="fill", fill_value=0.0) - step
+        new = jnp.stack([mu, nu, jnp.zeros_like(mu)], axis=1)
+        return (table.at[idx].set(value, mode="drop"),
+                SparseAdamState(count=count, moments=moments.at[idx].set(new, mode="drop")))
+
+    return SparseAdam(init, update)
+
+
+def reset(state: SparseAdamState) -> SparseAdamState:
+    """Fresh moments and step count (the original N3 code rebuilds its optimiser every frame)."""
+    return SparseAdamState(count=jnp.zeros_like(state.count), moments=jnp.zeros_like(state.moments))

@@ -1,0 +1,558 @@
+"""The N3 mapping engine as pure functions over one state pytree.
+
+    static = N3Static.from_config(cfg)                # frozen, hashable: shapes and modes
+    state = init_state(static, cfg, capacities_for(static, cfg))
+    state = set_origin(static, state, sensor_xyz_world) # once, before the first frame
+    state, frame_stats, train_stats = step(static, state, scan)   # integrate + train, one jit
+    sdf, valid = query(static, state, points_m)
+
+`integrate(static, state, scan, key)` samples the frame's training pairs, allocates leaf voxels and
+their corner feature rows (fixed-capacity hash tables), stores the pairs in their voxels' blocks and
+slides the window. `train(static, state, key, active)` runs the K iterations of hierarchical
+sampling, loss (BCE + eikonal through `jax.grad`) and Adam in one `lax.fori_loop`. `step` is both
+in one compiled program with the state donated, so every table is updated in place.
+
+Capacities are fixed inside jit. Nothing is dropped when one runs out: `integrate` is all or
+nothing for the pair store, hash inserts revert themselves on overflow, corner allocation is a
+queue worked off `new_voxels_per_pass` voxels at a time, and `FrameStats.ok` is False until the
+frame is fully in; then `train` does nothing and the PRNG key does not advance, so the host grows
+what the stats name (`grow_for`, outside jit) and calls `step` again with the same scan, with
+the same result as if the capacity had been there from the start.
+
+Frames: the state lives in a *map frame* = world - origin, origin = `origin_vox * leaf` (an
+integer voxel index, snapped to the coarsest level), so float32 stays precise on large scenes.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import logging
+import math
+import time
+from typing import NamedTuple
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxmap.grid import features as gfeat
+from jaxmap.grid import hashing
+from jaxmap.n3 import adam, hierarchical, window
+from jaxmap.n3.decoder import init_decoder
+from jaxmap.n3.field import mlp, n3_loss
+from jaxmap.n3.sampling import sample_frame
+
+log = logging.getLogger("jaxmap")
+
+
+@dataclasses.dataclass(frozen=True)
+class N3Static:
+    """Everything that fixes the compiled programs (hashable; a jit static argument). Values that
+    do not change shapes or control flow (learning rate, beta, eikonal weight) are in `Hyper`."""
+
+    leaf: float                 # leaf voxel size, metres
+    levels: int                 # feature levels L
+    feature_dim: int            # D
+    hidden_dim: int
+    hidden_layers: int
+    label_mode: str
+    trunc: float
+    sigma: float
+    n_surface: int
+    n_free: int
+    free_band: float
+    free_label: float
+    iters: int
+    hierarchical: bool
+    nv: int
+    np_per_voxel: int
+    nt: int
+    batch_size: int
+    freeze_after_frame: int
+    reset_adam: bool
+    window_mode: str
+    keyframes: int
+    radius_vox: int             # window half-width in leaf voxels (the crop radius)
+    max_load: float
+    mask_level: int
+    min_leaf_corners: int
+    # Corner allocations per `integrate` pass (a static batch of L*8 keys each): a typical frame
+    # of the city brings ~1700 new voxels (max ~6000); the first frame ~20000 takes 3 passes.
+    new_voxels_per_pass: int = 8192
+
+    @classmethod
+    def from_config(cls, cfg) -> "N3Static":
+        g, s, t, w, m = cfg.grid, cfg.sampling, cfg.train, cfg.window, cfg.mesh
+        leaf = float(g.leaf_vox_size)
+        return cls(
+            leaf=leaf, levels=g.feature_levels, feature_dim=g.feature_dim, hidden_dim=cfg.decoder.hidden_dim,
+            hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
+            sigma=s.sigma_m, n_surface=s.surface_sample_n, n_free=s.free_sample_n, free_band=s.free_band_m,
+            free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
+            iters=t.iters, hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
+            batch_size=t.batch_size, freeze_after_frame=t.freeze_after_frame, reset_adam=t.reset_adam_each_frame,
+            window_mode=w.mode, keyframes=w.keyframes if w.mode == "keyframe" else 0,
+            radius_vox=int(math.ceil(cfg.preprocess.max_range_m / leaf)), max_load=g.max_load,
+            mask_level=m.mask_level, min_leaf_corners=m.min_leaf_corners,
+        )
+
+    @property
+    def corners_per_voxel(self) -> int:
+        return self.levels * 8
+
+
+@flax.struct.dataclass
+class Hyper:
+    lr: jax.Array        # [] Adam learning rate (features and decoder)
+    beta: jax.Array      # [] BCE sigmoid scale, metres
+    weight_e: jax.Array  # [] eikonal weight
+
+
+@flax.struct.dataclass
+class N3State:
+    voxels: hashing.HashTable              # leaf voxel (x, y, z, 0) -> voxel row
+    corners: hashing.HashTable             # corner (x, y, z, level) -> feature row
+    voxel_coord: jax.Array                 # [V, 3] int32 leaf-voxel coordinate of each voxel row
+    voxel_corner_rows: jax.Array           # [V, L*8] int32 feature rows of the voxel's corners (-1: not yet)
+    voxels_with_corners: jax.Array         # [] int32: rows [0, this) have their corner rows
+    feature_table: jax.Array               # [R, D] float32 corner features
+    feature_opt: adam.SparseAdamState      # sparse Adam moments of feature_table
+    decoder: dict                          # flax params of the SDF decoder
+    decoder_opt: optax.ScaleByAdamState    # Adam moments of the decoder
+    store: window.PairStore                # voxel-oriented training pairs and the current window
+    origin_vox: jax.Array                  # [3] int32: map origin in leaf voxels (world = map + origin)
+    key: jax.Array                         # PRNG key, split once per frame
+    frame: jax.Array                       # [] int32 frames integrated and trained so far
+    hyper: Hyper
+
+
+class ScanBatch(NamedTuple):
+    """One preprocessed scan in the map frame, padded to a bucket size N."""
+
+    points: jax.Array    # [N, 3] float32 map frame
+    normals: jax.Array   # [N, 3] float32 unit, oriented towards the sensor
+    valid: jax.Array     # [N] bool, False for padding
+    sensor: jax.Array    # [3] float32 sensor position, map frame
+
+
+class FrameStats(NamedTuple):
+    """What the host reads once per frame (one `jax.device_get`)."""
+
+    ok: jax.Array               # [] bool: the frame is in and trained; False: grow what is flagged, retry
+    voxel_overflow: jax.Array   # [] bool: voxel table or voxel rows full
+    corner_overflow: jax.Array  # [] bool: corner table or feature rows full
+    store_overflow: jax.Array   # [] bool: not enough free blocks
+    pending_corners: jax.Array  # [] int32: voxels still waiting for corner rows (another pass needed)
+    voxels: jax.Array           # [] int32 leaf voxels allocated
+    feature_rows: jax.Array     # [] int32 corner rows allocated
+    new_voxels: jax.Array       # [] int32 voxels this pass allocated
+    new_feature_rows: jax.Array # [] int32 corner rows this pass allocated
+    blocks_needed: jax.Array    # [] int32
+    blocks_free: jax.Array      # [] int32
+    window_blocks: jax.Array    # [] int32 blocks in the window holding pairs
+    store_pairs: jax.Array      # [] int32 pairs held by the store
+    free_dropped: jax.Array     # [] int32 free-space samples outside every allocated voxel (train nothing)
+
+
+class TrainStats(NamedTuple):
+    loss: jax.Array     # [] mean over the K iterations
+    bce: jax.Array
+    eikonal: jax.Array
+
+
+@dataclasses.dataclass(frozen=True)
+class Capacities:
+    """Array sizes of a state (host-side; a change recompiles)."""
+
+    voxel_slots: int     # voxel hash-table slots (power of two)
+    voxel_rows: int      # V
+    corner_slots: int    # corner hash-table slots (power of two)
+    feature_rows: int    # R
+    store_blocks: int    # S
+    pairs_per_block: int # P
+
+    @classmethod
+    def of(cls, state: N3State) -> "Capacities":
+        return cls(state.voxels.capacity, state.voxel_coord.shape[0], state.corners.capacity,
+                   state.feature_table.shape[0], state.store.n_slots, state.store.block_size)
+
+
+def pow2(n: int) -> int:
+    return 1 << max(int(n) - 1, 1).bit_length()
+
+
+def _round_up(n: float, step: int = 1 << 14) -> int:
+    return int(math.ceil(max(n, 1) / step) * step)
+
+
+def capacities_for(static: N3Static, cfg) -> Capacities:
+    """Initial sizes from the config, so that a drive of a few hundred metres never grows.
+
+    The window (a cube of half-width = crop radius) holds about `2 pi r^2 / leaf^2` surface voxels
+    (ground disc plus as much again of facades, cars and trees); the store gets 1.5x that many
+    blocks (or `window.initial_blocks` if larger). The map keeps 4 windows' worth of voxels and
+    2.5 corner rows per voxel (2.2 measured on the city) before anything grows; hash tables get the
+    power-of-two slot counts that keep them under `max_load`.
+    """
+    r = cfg.preprocess.max_range_m
+    window_voxels = 2.0 * math.pi * r * r / static.leaf**2
+    blocks = max(_round_up(1.5 * window_voxels), pow2(cfg.window.initial_blocks))
+    voxels = _round_up(4 * window_voxels + 2 * static.new_voxels_per_pass)
+    rows = _round_up(2.5 * voxels)
+    return Capacities(voxel_slots=pow2(voxels / static.max_load), voxel_rows=voxels,
+                      corner_slots=pow2(rows / static.max_load), feature_rows=rows,
+                      store_blocks=blocks, pairs_per_block=cfg.window.pairs_per_voxel)
+
+
+FEATURE_INIT_BLOCK = 1 << 16
+
+
+def _init_features(seed: int, start: int, n: int, dim: int, std: float) -> jax.Array:
+    """Rows [start, start + n) of the feature table's N(0, std^2) initialisation.
+
+    Rows come in doubling blocks, [0, B), [B, 2B), [2B, 4B), ..., each from its own key
+    (`fold_in(seed + 2, block start)`, the first from the key itself), so a row's initial value does
+    not depend on the table's capacity or on when it grew (threefry draws are prefix-stable).
+    """
+    base = jax.random.PRNGKey(seed + 2)
+    out, lo, hi = [], start, start + n
+    b0, b1 = 0, FEATURE_INIT_BLOCK
+    while lo < hi:
+        if lo < b1:
+            key = base if b0 == 0 else jax.random.fold_in(base, b0)
+            top = min(hi, b1)
+            out.append(gfeat.init_features(key, top - b0, dim, std)[lo - b0:])
+            lo = top
+        b0, b1 = b1, 2 * b1
+    return jnp.concatenate(out) if out else jnp.zeros((0, dim), jnp.float32)
+
+
+def init_state(static: N3Static, cfg, caps: Capacities) -> N3State:
+    """An empty map with the given capacities (host-side)."""
+    t = cfg.train
+    _, dec = init_decoder(jax.random.PRNGKey(t.seed + 1), static.feature_dim, static.hidden_dim,
+                          static.hidden_layers)
+    table = _init_features(t.seed, 0, caps.feature_rows, static.feature_dim, cfg.grid.feature_std)
+    return N3State(
+        voxels=hashing.create(caps.voxel_slots),
+        corners=hashing.create(caps.corner_slots),
+        voxel_coord=jnp.zeros((caps.voxel_rows, 3), jnp.int32),
+        voxel_corner_rows=jnp.full((caps.voxel_rows, static.corners_per_voxel), -1, jnp.int32),
+        voxels_with_corners=jnp.zeros((), jnp.int32),
+        feature_table=table,
+        feature_opt=adam.sparse_adam().init(table),
+        decoder=dec,
+        decoder_opt=optax.scale_by_adam().init(dec),
+        store=window.create(caps.store_blocks, caps.pairs_per_block, caps.voxel_rows),
+        origin_vox=jnp.zeros((3,), jnp.int32),
+        key=jax.random.PRNGKey(t.seed),
+        frame=jnp.zeros((), jnp.int32),
+        hyper=Hyper(lr=jnp.float32(t.lr), beta=jnp.float32(t.sigma_sigmoid_m), weight_e=jnp.float32(t.weight_e)),
+    )
+
+
+def set_origin(static: N3Static, state: N3State, sensor_world: np.ndarray) -> N3State:
+    """Map origin at the sensor position (world, metres), snapped to the coarsest voxel level."""
+    coarse = 1 << (static.levels - 1)
+    k = np.round(np.asarray(sensor_world, np.float64) / (static.leaf * coarse))
+    return state.replace(origin_vox=jnp.asarray(k * coarse, jnp.int32))
+
+
+def origin_world(static: N3Static, state: N3State) -> np.ndarray:
+    """[3] float64 world position of the map frame's origin."""
+    return np.asarray(jax.device_get(state.origin_vox), np.float64) * static.leaf
+
+
+# ---------------------------------------------------------------------------------------------
+# integrate: sample, allocate, store, slide
+# ---------------------------------------------------------------------------------------------
+
+
+def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N3State, FrameStats]:
+    """Put one scan into the map (one pass; see the module docstring for `ok` and retries)."""
+    n = scan.points.shape[0]
+    ns, nf = static.n_surface, static.n_free
+    samples = sample_frame(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
+                           trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=nf,
+                           free_band=static.free_band, free_label=static.free_label)
+    vox = gfeat.leaf_voxel(samples.points, static.leaf)                           # [N*(ns+nf), 3]
+    vkeys = jnp.concatenate([vox, jnp.zeros_like(vox[:, :1])], -1).reshape(n, ns + nf, 4)
+    valid = samples.valid.reshape(n, ns + nf)
+
+    # Leaf voxels where near-surface samples land (all feature levels at once).
+    v_rows_cap = state.voxel_coord.shape[0]
+    v_limit = min(int(static.max_load * state.voxels.capacity), v_rows_cap)
+    voxels, surf_rows, v_over, n_new_v, _ = hashing._insert_impl(
+        state.voxels, vkeys[:, :ns].reshape(-1, 4), valid[:, :ns].reshape(-1), hashing.DEFAULT_MAX_PROBES, v_limit)
+    surf_vox = vox.reshape(n, ns + nf, 3)[:, :ns].reshape(-1, 3)
+    voxel_coord = state.voxel_coord.at[jnp.where(surf_rows >= 0, surf_rows, v_rows_cap)].set(surf_vox, mode="drop")
+
+    # Corner rows for up to `new_voxels_per_pass` voxels that have none yet (a queue: rows are
+    # handed out in order, so those voxels are rows [voxels_with_corners, count)).
+    k = static.new_voxels_per_pass
+    done = state.voxels_with_corners
+    pend = done + jnp.arange(k, dtype=jnp.int32)
+    pend_ok = pend < voxels.count
+    ckeys = gfeat.corner_keys(voxel_coord[jnp.minimum(pend, v_rows_cap - 1)], static.levels)  # [k, L*8, 4]
+    c_limit = min(int(static.max_load * state.corners.capacity), state.feature_table.shape[0])
+    corners, crows, c_over, n_new_c, _ = hashing._insert_impl(
+        state.corners, ckeys.reshape(-1, 4), jnp.repeat(pend_ok, static.corners_per_voxel),
+        hashing.DEFAULT_MAX_PROBES, c_limit)
+    wrote = pend_ok & ~c_over
+    voxel_corner_rows = state.voxel_corner_rows.at[jnp.where(wrote, pend, v_rows_cap)].set(
+        crows.reshape(k, -1), mode="drop")
+    done = done + jnp.sum(wrote, dtype=jnp.int32)
+    pending = voxels.count - done
+
+    # Free-space samples train where their leaf voxel has features; elsewhere they would only train
+    # the decoder's empty-space output (counted in the stats, not silently lost).
+    free_rows = hashing.lookup(voxels, vkeys[:, ns:].reshape(-1, 4)).reshape(n, nf)
+    free_ok = valid[:, ns:] & (free_rows >= 0)
+    rows = jnp.concatenate([jnp.where(valid[:, :ns], surf_rows.reshape(n, ns), -1),
+                            jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
+    allowed = ~v_over & ~c_over & (pending == 0)
+    center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
+    store, ids, n_win, sst = window.update(
+        state.store, rows, vox, samples.points, samples.labels, samples.surface, state.frame, center, allowed,
+        radius_vox=static.radius_vox, mode=static.window_mode, keyframes=static.keyframes)
+    store = store.replace(window_ids=jnp.where(sst.ok, ids, state.store.window_ids),
+                          window_n=jnp.where(sst.ok, n_win, state.store.window_n))
+    state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
+                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store)
+    stats = FrameStats(
+        ok=sst.ok, voxel_overflow=v_over, corner_overflow=c_over, store_overflow=allowed & ~sst.ok,
+        pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
+        new_feature_rows=n_new_c, blocks_needed=sst.blocks_needed, blocks_free=sst.blocks_free,
+        window_blocks=store.window_n, store_pairs=window.total_pairs(store),
+        free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
+    )
+    return state, stats
+
+
+# ---------------------------------------------------------------------------------------------
+# train: K iterations in one loop
+# ---------------------------------------------------------------------------------------------
+
+
+def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, TrainStats]:
+    """K iterations of (hierarchical) batch selection, loss and Adam over the current window.
+
+    Features get sparse Adam on the rows each batch touches (O(batch) per iteration, however large
+    the map); the decoder gets Adam until frame `freeze_after_frame`. active: [] bool; False runs
+    no iteration and leaves the state as it is (a frame that did not fit yet).
+    """
+    active = jnp.asarray(active, bool)
+    store, h = state.store, state.hyper
+    ids, n = store.window_ids, store.window_n
+    opt = adam.sparse_adam()
+    dec_tx = optax.scale_by_adam()
+    train_decoder = active & (state.frame < static.freeze_after_frame)
+    feature_opt = state.feature_opt
+    if static.reset_adam:  # the original N3 code rebuilds its optimiser every frame
+        fresh = adam.reset(feature_opt)
+        feature_opt = jax.tree_util.tree_map(lambda a, b: jnp.where(active, a, b), fresh, feature_opt)
+    loss = functools.partial(n3_loss, leaf=static.leaf, levels=static.levels)
+    grad_both = jax.value_and_grad(loss, argnums=(0, 1), has_aux=True)
+    grad_feats = jax.value_and_grad(loss, argnums=0, has_aux=True)
+
+    def loss_grad(*args):
+        # The decoder's gradient costs ~40 % of the step; once it is frozen it is not computed.
+        def feats_only(args):
+            out, g = grad_feats(*args)
+            return out, (g, jax.tree_util.tree_map(jnp.zeros_like, args[1]))
+
+        return jax.lax.cond(train_decoder, lambda a: grad_both(*a), feats_only, args)
+
+    frame = state.frame
+
+    def body(_, carry):
+        table, f_opt, dec, d_opt, key, acc = carry
+        key, k = jax.random.split(key)
+        if static.hierarchical:
+            b = hierarchical.sample_hierarchical(k, store, ids, n, nv=static.nv, np_=static.np_per_voxel,
+                                                 nt=static.nt, frame=frame, keyframes=static.keyframes)
+        else:
+            b = hierarchical.sample_uniform(k, store, ids, n, batch=static.batch_size, frame=frame,
+                                            keyframes=static.keyframes)
+        rows = state.voxel_corner_rows[jnp.maximum(store.voxel_of_slot[b.slots], 0)]    # [G, L*8]
+        feats = table[jnp.maximum(rows, 0)]                                              # [G, L*8, D]
+        (loss, (l_bce, l_eik)), (g_feat, g_dec) = loss_grad(feats, dec, b, store.coord[b.slots], h.beta,
+                                                             h.weight_e)
+        table, f_opt = opt.update(table, f_opt, rows.reshape(-1), g_feat.reshape(-1, table.shape[-1]), h.lr)
+        upd, d_opt_new = dec_tx.update(g_dec, d_opt, dec)
+        dec_new = jax.tree_util.tree_map(lambda p, u: p - h.lr * u, dec, upd)
+        dec, d_opt = jax.tree_util.tree_map(lambda a, b: jnp.where(train_decoder, a, b), (dec_new, d_opt_new),
+                                            (dec, d_opt))
+        return table, f_opt, dec, d_opt, key, acc + jnp.stack([loss, l_bce, l_eik])
+
+    n_iters = jnp.where(active, static.iters, 0)
+    carry = (state.feature_table, feature_opt, state.decoder, state.decoder_opt, key, jnp.zeros((3,)))
+    table, f_opt, dec, d_opt, _, acc = jax.lax.fori_loop(0, n_iters, body, carry)
+    acc = acc / static.iters
+    state = state.replace(feature_table=table, feature_opt=f_opt, decoder=dec, decoder_opt=d_opt,
+                          frame=state.frame + active.astype(jnp.int32))
+    return state, TrainStats(acc[0], acc[1], acc[2])
+
+
+@functools.partial(jax.jit, static_argnums=0, donate_argnums=1)
+def step(static: N3Static, state: N3State, scan: ScanBatch):
+    """integrate + train of one frame, one compiled program, the state donated (updated in place).
+    Returns (state, FrameStats, TrainStats); when `FrameStats.ok` is False nothing was trained and
+    the key did not advance: grow (`grow_for`) and call again with the same scan."""
+    key, k_sample, k_train = jax.random.split(state.key, 3)
+    state, fstats = integrate(static, state, scan, k_sample)
+    state, tstats = train(static, state, k_train, active=fstats.ok)
+    return state.replace(key=jnp.where(fstats.ok, key, state.key)), fstats, tstats
+
+
+# ---------------------------------------------------------------------------------------------
+# queries
+# ---------------------------------------------------------------------------------------------
+
+
+def query(static: N3Static, state: N3State, points_m):
+    """SDF at map-frame points [N, 3] -> (sdf [N] float32, valid [N] bool).
+
+    A point is valid where the 8 corners of its level-`mask_level` voxel have features (0 = only
+    inside allocated leaf voxels; 1 = inside their 2x parents, which closes the gaps between LiDAR
+    rings on grazing ground, as SHINE/N3 mesh at `mc_vis_level` 1), and at least `min_leaf_corners`
+    of the 8 corners of its leaf voxel have features. Corners without features count as zero.
+    """
+    vox = gfeat.leaf_voxel(points_m, static.leaf)
+    keys = gfeat.corner_keys(vox, static.levels)                                   # [N, L*8, 4]
+    rows = hashing.lookup(state.corners, keys.reshape(-1, 4)).reshape(keys.shape[:2])
+    ml = static.mask_level
+    valid = jnp.all(rows[:, ml * 8:(ml + 1) * 8] >= 0, axis=1)
+    valid &= jnp.sum(rows[:, :8] >= 0, axis=1) >= static.min_leaf_corners
+    w = gfeat.corner_weights(points_m, vox, static.leaf, static.levels)
+    f = gfeat.interpolate(state.feature_table, rows, w)
+    return jax.vmap(mlp, in_axes=(None, 0))(state.decoder, f), valid
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def query_jit(static: N3Static, state: N3State, points_m):
+    return query(static, state, points_m)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def query_grad_jit(static: N3Static, state: N3State, points_m):
+    """(sdf [N], d sdf / d x [N, 3]) at map-frame points [N, 3]."""
+    sdf, vjp = jax.vjp(lambda p: query(static, state, p)[0], points_m)
+    return sdf, vjp(jnp.ones_like(sdf))[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# growth (host side, outside jit)
+# ---------------------------------------------------------------------------------------------
+
+
+def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, feature_std: float,
+             headroom: dict) -> N3State:
+    """Grow (doubling) whatever `stats` says is full or will be within a frame or two.
+
+    headroom: host-side maxima seen so far ({"voxels", "feature_rows", "blocks"} per pass), so that
+    growth happens between frames, not as a failed pass. Returns the state unchanged when nothing
+    needs to grow. Every growth is logged; it changes array shapes, so the next `step` compiles.
+    """
+    caps = Capacities.of(state)
+    voxels, rows = int(stats.voxels), int(stats.feature_rows)
+    v_need = voxels + 2 * max(headroom.get("voxels", 0), static.new_voxels_per_pass // 4)
+    c_need = rows + 2 * max(headroom.get("feature_rows", 0), static.new_voxels_per_pass // 2)
+    v_rows, r_rows = caps.voxel_rows, caps.feature_rows
+    while v_need > v_rows or (bool(stats.voxel_overflow) and v_rows == caps.voxel_rows):
+        v_rows *= 2
+    while c_need > r_rows or (bool(stats.corner_overflow) and r_rows == caps.feature_rows):
+        r_rows *= 2
+    v_slots = max(caps.voxel_slots, pow2(v_rows / static.max_load))
+    c_slots = max(caps.corner_slots, pow2(r_rows / static.max_load))
+    blocks = caps.store_blocks
+    used = caps.store_blocks - int(stats.blocks_free) + int(stats.blocks_needed)
+    b_need = used + headroom.get("blocks", 0)
+    while b_need > blocks or (bool(stats.store_overflow) and blocks == caps.store_blocks):
+        blocks *= 2
+    if v_rows != caps.voxel_rows:
+        log.info("growing the voxel table %d -> %d voxels (%d in use)", caps.voxel_rows, v_rows, voxels)
+        state = state.replace(
+            voxels=hashing.grow(state.voxels, v_slots) if v_slots != caps.voxel_slots else state.voxels,
+            voxel_coord=_pad_rows(state.voxel_coord, v_rows, 0),
+            voxel_corner_rows=_pad_rows(state.voxel_corner_rows, v_rows, -1),
+            store=window.grow(state.store, n_voxel_rows=v_rows),
+        )
+    if r_rows != caps.feature_rows:
+        log.info("growing the feature table %d -> %d rows (%d in use)", caps.feature_rows, r_rows, rows)
+        extra = _init_features(seed, caps.feature_rows, r_rows - caps.feature_rows, static.feature_dim, feature_std)
+        o = state.feature_opt
+        state = state.replace(
+            corners=hashing.grow(state.corners, c_slots) if c_slots != caps.corner_slots else state.corners,
+            feature_table=jnp.concatenate([state.feature_table, extra]),
+            feature_opt=o._replace(moments=_pad_rows(o.moments, r_rows, 0.0)),
+        )
+    if blocks != caps.store_blocks:
+        log.info("growing the pair store %d -> %d blocks", caps.store_blocks, blocks)
+        state = state.replace(store=window.grow(state.store, n_slots=blocks))
+    return state
+
+
+def _pad_rows(x: jax.Array, n: int, fill) -> jax.Array:
+    if x.shape[0] >= n:
+        return x
+    return jnp.concatenate([x, jnp.full((n - x.shape[0],) + x.shape[1:], fill, x.dtype)])
+
+
+def store_bytes(store: window.PairStore) -> int:
+    """Bytes of the pair store's arrays (the sliding window's memory)."""
+    return int(sum(np.prod(x.shape) * x.dtype.itemsize for x in jax.tree_util.tree_leaves(store)))
+
+
+# ---------------------------------------------------------------------------------------------
+# one frame on the host: compile once per shape, retry passes, plan growth
+# ---------------------------------------------------------------------------------------------
+
+_EXECUTABLES: dict = {}  # (static, capacities, scan bucket) -> compiled `step`
+COMPILE_SECONDS: list = []  # seconds of every compile of `step` in this process (benchmarks read it)
+
+
+def compiled_step(static: N3Static, state: N3State, batch: ScanBatch):
+    """The compiled `step` for these shapes, compiled (and logged) on first use. Compiling ahead of
+    time, instead of on the first call, lets the log say what the wait is before it starts."""
+    key = (static, Capacities.of(state), batch.points.shape[0])
+    fn = _EXECUTABLES.get(key)
+    if fn is None:
+        from jaxmap import compile_cache
+
+        est = compile_cache.estimate("n3_step")
+        log.info("compiling the mapper (one time for these table sizes%s)",
+                 f", up to about {est:.0f} s" if est else "")
+        t0 = time.perf_counter()
+        fn = step.lower(static, state, batch).compile()
+        secs = time.perf_counter() - t0
+        compile_cache.record("n3_step", secs)
+        COMPILE_SECONDS.append(secs)
+        log.info("compiled in %.1f s", secs)
+        _EXECUTABLES[key] = fn
+    return fn
+
+
+def run_frame(static: N3Static, state: N3State, batch: ScanBatch, headroom: dict, *, seed: int,
+              feature_std: float):
+    """Integrate and train one frame, growing capacities as its stats ask (host side).
+
+    Returns (state, FrameStats, TrainStats, passes) as numpy values; `headroom` (the largest
+    per-pass allocations seen) is updated in place and used to grow before a table is full.
+    """
+    passes = 0
+    while True:
+        state, fs, ts = compiled_step(static, state, batch)(state, batch)
+        fs, ts = jax.device_get((fs, ts))  # the one host sync of a pass
+        passes += 1
+        if int(fs.voxels) > 2 * int(fs.new_voxels):  # not the first frames, where everything is new
+            headroom["voxels"] = max(headroom.get("voxels", 0), int(fs.new_voxels))
+            headroom["feature_rows"] = max(headroom.get("feature_rows", 0), int(fs.new_feature_rows))
+            headroom["blocks"] = max(headroom.get("blocks", 0), int(fs.blocks_needed))
+        state = grow_for(static, state, fs, seed, feature_std, headroom)
+        if bool(fs.ok):
+            return state, fs, ts, passes
+        if passes > 64:
+            raise RuntimeError(f"frame did not fit after {passes} passes ({fs}); please report this bug")
