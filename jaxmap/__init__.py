@@ -11,10 +11,16 @@ def _enable_compilation_cache():
     from jaxmap import compile_cache
 
     path = compile_cache.cache_dir()
+    explicit = "JAXMAP_CACHE_DIR" in _os.environ  # ours, set by the user: it wins over an inherited JAX one
     if not path:
+        if explicit:
+            _os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
         return
     if "jax" in _sys.modules:
         compile_cache.enable(path)
+    elif explicit:
+        _os.environ["JAX_COMPILATION_CACHE_DIR"] = path
+        _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
     else:
         _os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", path)
         _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")

@@ -635,3 +635,34 @@ def test_config_topic_reaches_the_bag(tmp_path, room):
     cfg = ImtConfig(data=DataConfig(path=str(path), kind="rosbag", topic="/b"))
     assert open_run_sequence(cfg).topic == "/b"
     assert DataConfig().topic == ""
+
+
+# ------------------------------------------------------------------------------------------------
+# End to end: the mapping commands on the converted sequences
+# ------------------------------------------------------------------------------------------------
+
+
+def test_map_imt_and_slam_run_on_a_bag_a_tum_and_a_replica_sequence(tmp_path, room):
+    """`jaxmap map` on a ROS 2 MCAP bag, `jaxmap imt` on the TUM layout and `jaxmap slam` on the
+    Replica layout of the same small room: each runs to a mesh, and the mapped frames are the room's."""
+    from jaxmap.cli import main
+
+    room_dir, room_seq, frames = room
+    bag = write_bag(tmp_path / "room", "mcap", room_bag_entries(room_seq, frames))
+    tum = tmp_path / "rgbd_dataset_freiburg1_room"
+    room_to_tum(room_dir, room_seq, frames, tum)
+    replica = room_to_replica(room_seq, frames, tmp_path / "Replica")
+    common = ["--no-progress"]
+    rc = main(["map", "configs/rgbd.yaml", "--data", str(bag), "--out", str(tmp_path / "map")] + common
+              + ["--set", "train.iters=3", "--set", "train.nv=64", "--set", "mesh.min_component_faces=0"])
+    assert rc == 0 and (tmp_path / "map" / "mesh.ply").exists()
+    timing = json.loads((tmp_path / "map" / "timing.json").read_text())
+    assert len(timing["frames"]) == len(frames)
+    rc = main(["imt", "configs/room_imt.yaml", "--data", str(tum), "--out", str(tmp_path / "imt")] + common
+              + ["--set", "data.every_frame=1", "--set", "map.min_points=2", "--set", "mesh.min_weight=1"])
+    assert rc == 0 and (tmp_path / "imt" / "mesh.ply").exists()
+    rc = main(["slam", "configs/room_slam.yaml", "--data", str(replica), "--out", str(tmp_path / "slam")] + common
+              + ["--set", "data.every_frame=1"])
+    assert rc == 0 and (tmp_path / "slam" / "trajectory_kitti.txt").exists()
+    traj = np.loadtxt(tmp_path / "slam" / "trajectory_kitti.txt").reshape(-1, 3, 4)
+    assert len(traj) == len(frames)

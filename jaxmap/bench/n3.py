@@ -53,6 +53,7 @@ def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str],
     from jaxmap.n3.run import city_config_path
 
     env = dict(os.environ, JAXMAP_CACHE_DIR=cache_dir)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # set by this process's `import jaxmap`
     cmd = [sys.executable, "-m", "jaxmap.cli", "map", city_config_path(), "--data", data, "--out", out,
            "--no-progress"] + [a for o in overrides for a in ("--set", o)]
     if not evaluate:
