@@ -82,11 +82,14 @@ def speed_row(s: dict) -> dict:
             "frames": len(frames)}
 
 
-def print_speed(rows: dict) -> None:
-    head = (f"{'run':<6}{'frames':>7}{'wall s':>8}{'s/frame':>8}{'median':>8}{'p95':>7}{'worst/med':>10}"
-            f"{'>2x med':>8}{'compile s':>10}{'#':>3}{'RSS map MB':>11}{'RSS all MB':>11}")
+def _print_head(head: str) -> None:
     print(head)
     print("-" * len(head))
+
+
+def print_speed(rows: dict) -> None:
+    _print_head(f"{'run':<6}{'frames':>7}{'wall s':>8}{'s/frame':>8}{'median':>8}{'p95':>7}{'worst/med':>10}"
+                f"{'>2x med':>8}{'compile s':>10}{'#':>3}{'RSS map MB':>11}{'RSS all MB':>11}")
     for name, r in rows.items():
         print(f"{name:<6}{r['frames']:>7d}{r['wall_s']:>8.1f}{r['s_per_frame']:>8.3f}{r['median_s']:>8.3f}{r['p95_s']:>7.3f}"
               f"{r['worst_after_10_over_median']:>10.2f}{r['frames_over_2x_median_after_10']:>8d}{r['compile_s']:>10.1f}"
@@ -182,10 +185,8 @@ def _print_row(name, r):
 
 
 def print_table(results: dict) -> None:
-    head = (f"{'variant':<11}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
-            f"{'s/frame':>8}{'store MB':>9}{'flat':>6}{'RSS MB':>8}")
-    print(head)
-    print("-" * len(head))
+    _print_head(f"{'variant':<11}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
+                f"{'s/frame':>8}{'store MB':>9}{'flat':>6}{'RSS MB':>8}")
     for name, r in results.items():
         m = r.get("metrics", {})
         print(f"{name:<11}{m.get('accuracy_cm', np.nan):>8.2f}{m.get('completion_cm', np.nan):>8.2f}"

@@ -130,6 +130,34 @@ def select_frames(n_total: int, begin_frame: int = 0, end_frame: int = -1, every
 # ------------------------------------------------------------------------------------------------
 
 
+def read_pose_lines(path, n_numbers: int, layout: str, missing: str) -> np.ndarray:
+    """Poses [M,4,4] float64 of a text file with one row-major matrix of `n_numbers` (12: [R|t], 16:
+    4x4) per line; blank lines skipped. DataError naming the file (and the line) when it is missing
+    (`missing` says what to write), a line has another count (`layout` names the expected one) or a
+    non-number; PoseError for a non-rigid matrix."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise DataError(f"{path}: {missing}")
+    poses = []
+    with open(path) as f:
+        for lineno, line in enumerate(f, start=1):
+            words = line.split()
+            if not words:
+                continue
+            if len(words) != n_numbers:
+                raise DataError(f"{path} line {lineno}: expected {n_numbers} numbers ({layout}), "
+                                f"found {len(words)}; fix or remove that line")
+            try:
+                vals = np.asarray([float(w) for w in words], np.float64)
+            except ValueError:
+                raise DataError(f"{path} line {lineno}: not a number in {line.strip()!r}") from None
+            T = np.eye(4)
+            T[: n_numbers // 4, :] = vals.reshape(-1, 4)
+            validate_pose(T, where=f"{path} line {lineno}")
+            poses.append(T)
+    return np.stack(poses) if poses else np.zeros((0, 4, 4))
+
+
 def read_poses(path) -> np.ndarray:
     """Read a KITTI pose file: one pose per line, 12 numbers = row-major 3x4 [R|t].
 
@@ -137,30 +165,8 @@ def read_poses(path) -> np.ndarray:
     Raises DataError for a missing file or a line without 12 numbers (naming the line), and PoseError
     (a DataError) for a non-rigid matrix (naming file and line).
     """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DataError(f"{path}: pose file not found; write one line of 12 numbers (row-major 3x4 [R|t]) "
-                        "per scan")
-    poses = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, start=1):
-            words = line.split()
-            if not words:
-                continue
-            if len(words) != 12:
-                raise DataError(f"{path} line {lineno}: expected 12 numbers (row-major 3x4 [R|t]), "
-                                f"found {len(words)}; fix or remove that line")
-            try:
-                vals = [float(w) for w in words]
-            except ValueError:
-                raise DataError(f"{path} line {lineno}: not a number in {line.strip()!r}") from None
-            T = np.eye(4)
-            T[:3, :] = np.asarray(vals, dtype=np.float64).reshape(3, 4)
-            validate_pose(T, where=f"{path} line {lineno}")
-            poses.append(T)
-    if not poses:
-        return np.zeros((0, 4, 4))
-    return np.stack(poses)
+    return read_pose_lines(path, 12, "row-major 3x4 [R|t]",
+                           "pose file not found; write one line of 12 numbers (row-major 3x4 [R|t]) per scan")
 
 
 def _fmt(x: float) -> str:

@@ -18,9 +18,8 @@ import os
 import numpy as np
 
 from jaxmap.errors import DataError
-from jaxmap.geometry import validate_pose
 from jaxmap.io.depth import backproject_depth, read_depth_png
-from jaxmap.io.kitti import Sequence
+from jaxmap.io.kitti import Sequence, read_pose_lines
 from jaxmap.io.pointcloud import natural_key
 
 log = logging.getLogger("jaxmap")
@@ -73,26 +72,9 @@ def read_cam_params(path) -> dict:
 
 def read_traj(path) -> np.ndarray:
     """traj.txt: 16 numbers (row-major 4x4 T_world_camera) per line -> [M,4,4] float64."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DataError(f"{path}: missing; a Replica sequence needs traj.txt with one line of 16 numbers "
-                        "(row-major 4x4 T_world_camera) per depth image")
-    poses = []
-    with open(path) as f:
-        for lineno, line in enumerate(f, start=1):
-            words = line.split()
-            if not words:
-                continue
-            if len(words) != 16:
-                raise DataError(f"{path} line {lineno}: expected 16 numbers (row-major 4x4 T_world_camera), "
-                                f"found {len(words)}; fix or remove that line")
-            try:
-                T = np.asarray([float(w) for w in words], np.float64).reshape(4, 4)
-            except ValueError:
-                raise DataError(f"{path} line {lineno}: not a number in {line.strip()!r}") from None
-            validate_pose(T, where=f"{path} line {lineno}")
-            poses.append(T)
-    return np.stack(poses) if poses else np.zeros((0, 4, 4))
+    return read_pose_lines(path, 16, "row-major 4x4 T_world_camera",
+                           "missing; a Replica sequence needs traj.txt with one line of 16 numbers "
+                           "(row-major 4x4 T_world_camera) per depth image")
 
 
 class ReplicaSequence(Sequence):

@@ -44,32 +44,46 @@ def poses_from_tum_rows(rows: np.ndarray, where: str, lines=None) -> np.ndarray:
     return T
 
 
-def read_tum_trajectory(path, what: str = "TUM trajectory") -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory file -> (timestamps [N] float64 s, poses [N,4,4] float64 T_world_sensor).
+def read_number_table(path, n_columns: int | None = None, missing: str = "not found",
+                      layout: str = "") -> tuple[np.ndarray, list[int]]:
+    """Numbers of a whitespace table ([L, C] float64) and the file line number of each row.
 
-    Raises DataError naming the file (and line) when it is missing, empty, or a line has not 8 numbers,
-    a non-number, NaN/inf or a non-unit quaternion."""
+    Blank and '#' lines are skipped. Every row has `n_columns` numbers (`layout` says what they are), or,
+    with None, as many as the first row. DataError naming the file (and the line) when it is missing
+    (`missing` says what to do), for a ragged row or a non-number."""
     path = os.fspath(path)
     if not os.path.isfile(path):
-        raise DataError(f"{path}: {what} not found; write one line 'timestamp tx ty tz qx qy qz qw' per pose")
+        raise DataError(f"{path}: {missing}")
     rows, lines = [], []
     with open(path) as f:
         for lineno, line in enumerate(f, start=1):
             words = line.split()
             if not words or words[0].startswith("#"):
                 continue
-            if len(words) != 8:
-                raise DataError(f"{path} line {lineno}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', "
+            if n_columns is not None and len(words) != n_columns:
+                raise DataError(f"{path} line {lineno}: expected {n_columns} numbers{' ' + layout if layout else ''}, "
                                 f"found {len(words)}; fix or remove that line")
+            if n_columns is None and rows and len(words) != len(rows[0]):
+                raise DataError(f"{path} line {lineno}: {len(words)} numbers, but the first pose line has "
+                                f"{len(rows[0])}; every line must have the same number of columns")
             try:
                 rows.append([float(w) for w in words])
             except ValueError:
                 raise DataError(f"{path} line {lineno}: not a number in {line.strip()!r}") from None
             lines.append(lineno)
-    if not rows:
-        raise DataError(f"{path}: {what} has no pose lines; expected 'timestamp tx ty tz qx qy qz qw' per line")
-    table = np.asarray(rows, dtype=np.float64)
-    return table[:, 0].copy(), poses_from_tum_rows(table[:, 1:], path, lines)
+    return (np.asarray(rows, np.float64) if rows else np.zeros((0, n_columns or 0))), lines
+
+
+def read_tum_trajectory(path, what: str = "TUM trajectory") -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file -> (timestamps [N] float64 s, poses [N,4,4] float64 T_world_sensor).
+
+    Raises DataError naming the file (and line) when it is missing, empty, or a line has not 8 numbers,
+    a non-number, NaN/inf or a non-unit quaternion."""
+    layout = "'timestamp tx ty tz qx qy qz qw'"
+    table, lines = read_number_table(path, 8, f"{what} not found; write one line {layout} per pose", layout)
+    if not len(table):
+        raise DataError(f"{os.fspath(path)}: {what} has no pose lines; expected {layout} per line")
+    return table[:, 0].copy(), poses_from_tum_rows(table[:, 1:], os.fspath(path), lines)
 
 
 def poses_at_times(times, pose_times, poses, tolerance: float, interpolate: bool):

@@ -43,29 +43,12 @@ def write_tum(path, timestamps, poses) -> None:
 
 
 def _read_table(path) -> tuple[np.ndarray, list[int]]:
-    """Numbers of a whitespace table ([L,C] float64) and the file line number of each row.
+    """Numbers of a whitespace table ([L,C] float64) and the file line number of each row (see
+    `jaxmap.io.stamped.read_number_table`: every line as many numbers as the first)."""
+    from jaxmap.io.stamped import read_number_table
 
-    Blank and '#' lines are skipped. DataError (naming file and line) for a ragged table or a non-number."""
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise DataError(f"{path}: trajectory file not found")
-    rows, lines = [], []
-    with open(path) as f:
-        for lineno, line in enumerate(f, start=1):
-            words = line.split()
-            if not words or words[0].startswith("#"):
-                continue
-            if rows and len(words) != len(rows[0]):
-                raise DataError(f"{path} line {lineno}: {len(words)} numbers, but the first pose line has "
-                                f"{len(rows[0])}; every line must have the same number of columns")
-            try:
-                rows.append([float(w) for w in words])
-            except ValueError:
-                raise DataError(f"{path} line {lineno}: not a number in {line.strip()!r}") from None
-            lines.append(lineno)
-    if not rows:
-        return np.zeros((0, 0)), []
-    return np.asarray(rows, dtype=np.float64), lines
+    table, lines = read_number_table(path, None, "trajectory file not found")
+    return (table if len(table) else np.zeros((0, 0))), lines
 
 
 def _tum_to_poses(path, table: np.ndarray, lines: list[int]) -> tuple[np.ndarray, np.ndarray]:
