@@ -14,7 +14,6 @@ import os
 import shutil
 
 import jax
-import numpy as np
 
 from jaxmap.errors import DataError
 
@@ -43,6 +42,12 @@ def save_tree(path: str, tree, meta: dict) -> None:
     if os.path.exists(path):
         shutil.rmtree(path)
     os.replace(tmp, path)
+
+
+def read_tree(path: str):
+    """The `state/` tree of checkpoint directory `path` (written by `save_tree`) as numpy arrays, in
+    the nested dicts orbax stores; the caller rebuilds its own types."""
+    return _checkpointer().restore(os.path.join(os.path.abspath(path), "state"))
 
 
 def read_meta(path: str, what: str = "jaxmap") -> tuple[str, dict]:

@@ -378,11 +378,11 @@ def attach_viewer(viewer: Viewer | None = None, port: int = 8080, mesh_every: in
                        mesh_max_share=mesh_max_share, snapshot_fn=snapshot_fn)
 
 
-def hooks_from_args(args, mesh_fn=None) -> ViewerHooks | None:
-    """The ViewerHooks of a command's `--view --view-port --view-mesh-every` flags, or None without --view."""
+def view_options(args) -> dict | None:
+    """{"port", "mesh_every"} of the `--view --view-port --view-mesh-every` flags, None without --view."""
     if not getattr(args, "view", False):
         return None
-    return attach_viewer(port=args.view_port, mesh_every=args.view_mesh_every, mesh_fn=mesh_fn)
+    return {"port": args.view_port, "mesh_every": args.view_mesh_every}
 
 
 # ------------------------------------------------------------------------------------------------

@@ -237,7 +237,7 @@ def test_hierarchical_sampler_matches_algorithm_1():
     slot_of = np.asarray(st.slot_of_voxel)
     inside = jnp.zeros(s, bool).at[jnp.asarray(slot_of[[0, 1, 3, 4, 5]])].set(True)  # voxel 2 outside
     inside = inside.at[int(slot_of[2])].set(False)
-    ids, n = hierarchical.window_slots(inside & (st.count > 0))
+    ids, n = window.window_slots(inside & (st.count > 0))
     b = hierarchical.sample_hierarchical(jax.random.PRNGKey(0), st, ids, n, nv=4000, np_=9, nt=10)
     vox_b = np.asarray(st.voxel_of_slot)[np.asarray(b.slots)]
     mask, labels = np.asarray(b.mask), np.asarray(b.labels)

@@ -117,13 +117,13 @@ class ImtMapper:
 
     @classmethod
     def load(cls, path: str, prior=None) -> "ImtMapper":
-        from jaxmap.checkpoint import _checkpointer, read_meta
+        from jaxmap.checkpoint import read_meta, read_tree
         from jaxmap.grid.hashing import HashTable
 
         path, meta = read_meta(path, "jaxmap imt")
         cfg = from_dict(ImtConfig, meta["config"], source=os.path.join(path, "meta.json"))
         m = cls(cfg, prior)
-        tree = _checkpointer().restore(os.path.join(path, "state"))
+        tree = read_tree(path)
         mp, t = tree["map"], tree["map"]["table"]
         m.map = lm.LatentMap(HashTable(np.asarray(t["keys"]), np.asarray(t["rows"]), np.asarray(t["count"])),
                              np.asarray(mp["coords"]), np.asarray(mp["latent"]), np.asarray(mp["jac"]),

@@ -143,14 +143,9 @@ def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool 
     return {"run": out_dir, **res, **timing["summary"], **timing["sizes"]}
 
 
-def view_options(args) -> dict | None:
-    """{"port", "mesh_every"} of the `--view --view-port --view-mesh-every` flags, None without --view."""
-    if not getattr(args, "view", False):
-        return None
-    return {"port": args.view_port, "mesh_every": args.view_mesh_every}
-
-
 def cli_imt(args) -> int:
+    from jaxmap.viewer import view_options
+
     cfg = config_from_args(args, ImtConfig)
     summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     print(json.dumps(summary))

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.checkpoint import read_meta, save_tree
+from jaxmap.checkpoint import read_meta, read_tree, save_tree
 from jaxmap.config import MapConfig, from_dict, to_dict
 from jaxmap.grid import hashing
 from jaxmap.n3 import core
@@ -162,12 +162,9 @@ def wait_for_saves() -> None:
 
 def load_state(path: str) -> tuple[MapConfig, core.N3State, list]:
     """(config, state, timings) of a checkpoint written by `save_state`."""
-    from jaxmap.checkpoint import _checkpointer
-
     wait_for_saves()
     path, meta = read_meta(path, "N3 map")
     cfg = from_dict(MapConfig, meta["config"], source=os.path.join(path, "meta.json"))
     static = core.N3Static.from_config(cfg)
     caps = core.Capacities(**meta["capacity"])
-    tree = _checkpointer().restore(os.path.join(path, "state"))
-    return cfg, expand(static, cfg, caps, tree), list(meta.get("timings", []))
+    return cfg, expand(static, cfg, caps, read_tree(path)), list(meta.get("timings", []))

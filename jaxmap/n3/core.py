@@ -42,6 +42,7 @@ from jaxmap.grid import hashing
 from jaxmap.n3 import adam, hierarchical, window
 from jaxmap.n3.decoder import init_decoder
 from jaxmap.n3.field import mlp, n3_loss
+from jaxmap.n3.loss import sdf_and_grad
 from jaxmap.n3.sampling import sample_frame
 
 log = logging.getLogger("jaxmap")
@@ -439,8 +440,7 @@ def query_jit(static: N3Static, state: N3State, points_m):
 @functools.partial(jax.jit, static_argnums=0)
 def query_grad_jit(static: N3Static, state: N3State, points_m):
     """(sdf [N], d sdf / d x [N, 3]) at map-frame points [N, 3]."""
-    sdf, vjp = jax.vjp(lambda p: query(static, state, p)[0], points_m)
-    return sdf, vjp(jnp.ones_like(sdf))[0]
+    return sdf_and_grad(lambda p: query(static, state, p)[0], points_m)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -11,7 +11,6 @@ from __future__ import annotations
 import functools
 
 import jax
-import jax.numpy as jnp
 
 from jaxmap.grid import features as gfeat
 from jaxmap.n3.loss import bce_loss, eikonal_loss

@@ -25,13 +25,6 @@ class Batch(NamedTuple):
     mask: jax.Array     # [G, K] bool: pair counts in the loss
 
 
-def window_slots(in_window):
-    """Compact list of window slots. in_window: [S] bool -> (ids [S] int32, n [] int32)."""
-    s = in_window.shape[0]
-    ids = jnp.nonzero(in_window, size=s, fill_value=0)[0].astype(jnp.int32)
-    return ids, in_window.sum().astype(jnp.int32)
-
-
 def _pair_mask(store: PairStore, slots, j, frame, keyframes):
     """Pairs written in the last `keyframes` frames only (keyframe ablation); keyframes<=0: all."""
     if keyframes <= 0:

@@ -29,6 +29,9 @@ class N3Mapper:
         self.state, self.timings = state, list(timings or [])
         self.frames = int(self.state.frame)
         self._bucket, self._headroom = 0, {}
+        # A host copy of the origin (fixed once the first frame set it): reading the state's every
+        # frame would be a second device->host transfer per frame.
+        self._origin = core.origin_world(self.static, self.state)
 
     def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
         """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
@@ -39,8 +42,9 @@ class N3Mapper:
         t1 = time.perf_counter()
         if self.frames == 0:
             self.state = core.set_origin(self.static, self.state, pose[:3, 3])
+            self._origin = core.origin_world(self.static, self.state)
         self._bucket = scan.bucket_for(len(pts), self._bucket)
-        batch = scan.to_batch(pts, nrm, pose, core.origin_world(self.static, self.state), self._bucket)
+        batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket)
         self.state, fs, ts, passes = core.run_frame(self.static, self.state, batch, self._headroom,
                                                      seed=self.cfg.train.seed, feature_std=self.cfg.grid.feature_std)
         t2 = time.perf_counter()
@@ -58,7 +62,7 @@ class N3Mapper:
     @property
     def origin(self) -> np.ndarray:
         """[3] float64 world position of the map frame."""
-        return core.origin_world(self.static, self.state)
+        return self._origin
 
     def sdf(self, points_w) -> tuple[np.ndarray, np.ndarray]:
         """Signed distance (metres) at world points [N,3] -> (sdf [N] float32, valid [N] bool)."""

@@ -211,7 +211,7 @@ def cli_map(args) -> int:
         cfg = config_from_args(args)
         out = cfg.output
     try:
-        from jaxmap.imt.run import view_options
+        from jaxmap.viewer import view_options
 
         summary = map_sequence(cfg, out, resume=bool(args.resume), progress=not args.no_progress,
                                mesh=not args.no_mesh, view=view_options(args))

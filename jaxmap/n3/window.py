@@ -222,9 +222,13 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
         voxel_of_slot=voxel_of_slot, slot_of_voxel=slot_of_voxel, coord=coord,
     )
     inside = in_window(store, center_vox, radius_vox, mode=mode, frame=frame, keyframes=keyframes)
-    inside &= store.count > 0
-    ids = nonzero_fixed(inside, s, 0)
-    return store, ids, inside.sum().astype(jnp.int32), StoreStats(ok, n_need, n_free)
+    ids, n = window_slots(inside & (store.count > 0))
+    return store, ids, n, StoreStats(ok, n_need, n_free)
+
+
+def window_slots(in_window):
+    """Compact list of window slots. in_window: [S] bool -> (ids [S] int32, n [] int32): `ids[:n]`."""
+    return nonzero_fixed(in_window, in_window.shape[0], 0), in_window.sum().astype(jnp.int32)
 
 
 def total_pairs(store: PairStore):

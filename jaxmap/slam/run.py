@@ -262,7 +262,7 @@ def _jsonable(x):
 
 def cli_slam(args) -> int:
     cfg = config_from_args(args, SlamConfig)
-    from jaxmap.imt.run import view_options
+    from jaxmap.viewer import view_options
 
     out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
