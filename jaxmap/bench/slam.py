@@ -9,7 +9,16 @@ and of the optimised trajectory, the reconstruction metrics (5 cm threshold) of 
 per loop the optimisation and remapping times. Before that, the odometry alone of both methods
 (`frontend.odometry.method`: KISS-ICP and jaxmap's frame-to-frame ICP, same config otherwise) is run
 over the sequence and their ATE / RPE / time per frame printed side by side. `--only odometry` stops
-there; `--only slam` skips it. Everything is written to OUT/bench.json.
+there; `--only slam` skips it.
+
+Two more runs on an unseen 300-frame room (seed 1) with Kinect-like depth noise (std 0.002 z^2 m,
+`kinect_noise`), made in data/room300_kinect when missing:
+* `long` (`--only long`): `jaxmap slam` with the shipped config (every 2nd frame: 150 frames) must
+  complete; its ATE, loops and map are printed.
+* `drift` (`--only drift`): every 6th frame (a keyframe rate: ~13 cm and 7 deg apart), where the
+  odometry drifts by decimetres before the loop; the ATE of odometry and of SLAM, and the maps built
+  with the true poses, the odometry poses and the SLAM run's remapped map (ratio remapped / true).
+Everything is written to OUT/bench.json.
 """
 from __future__ import annotations
 
@@ -44,10 +53,24 @@ def main(args) -> int:
     # LiDAR (KITTI layout) -> configs/city_slam.yaml, depth images -> configs/room_slam.yaml
     config = shipped_config_path("city_slam.yaml" if detect_kind(data) == "kitti" else "room_slam.yaml")
     cfg = load_config(config, base_overrides(args, data, os.path.join(out, "slam")), schema=SlamConfig)
-    only = {v.strip() for v in args.only.split(",")} if getattr(args, "only", None) else {"odometry", "slam"}
-    unknown = only - {"odometry", "slam"}
+    parts = {"odometry", "slam", "long", "drift"}
+    only = {v.strip() for v in args.only.split(",")} if getattr(args, "only", None) else parts
+    unknown = only - parts
     if unknown:
-        raise SystemExit(f"jaxmap bench slam: --only takes odometry and/or slam, not {', '.join(sorted(unknown))}")
+        raise SystemExit(f"jaxmap bench slam: --only takes {', '.join(sorted(parts))}, not {', '.join(sorted(unknown))}")
+    if only & {"long", "drift"}:
+        kinect = {}
+        path = make_kinect_room()
+        if "long" in only:
+            kinect["long"] = run_on(path, 2, os.path.join(out, "long"), args, compare=False)
+        if "drift" in only:
+            kinect["drift"] = run_on(path, 6, os.path.join(out, "drift"), args, compare=True)
+        _print_kinect(kinect)
+        with open(os.path.join(out, "bench_kinect.json"), "w") as f:
+            json.dump(kinect, f, indent=1, default=lambda x: x.tolist() if hasattr(x, "tolist") else str(x))
+        only -= {"long", "drift"}
+        if not only:
+            return 0
     res_odo = None
     if "odometry" in only:
         res_odo = compare_odometry(cfg, open_run_sequence(cfg.imt()))
@@ -77,6 +100,94 @@ def main(args) -> int:
         json.dump(res, f, indent=1, default=lambda x: x.tolist() if hasattr(x, "tolist") else str(x))
     print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
     return 0
+
+
+KINECT_ROOM = "data/room300_kinect"
+
+
+def kinect_noise(path: str, k: float = 0.002, seed: int = 0) -> None:
+    """Add Kinect-like depth noise to the depth PNGs of a depth-layout directory, in place: per pixel
+    z + N(0, (k z^2)^2) metres (Khoshelham & Elberink 2012), rounded to millimetres; holes stay holes."""
+    import glob
+
+    from jaxmap.io.depth import read_depth_png, write_depth_png
+
+    rng = np.random.default_rng(seed)
+    for f in sorted(glob.glob(os.path.join(path, "depth", "*.png"))):
+        mm = read_depth_png(f).astype(np.float64)
+        z = mm / 1000.0
+        noisy = np.where(mm > 0, z + rng.normal(size=z.shape) * k * z * z, 0.0)
+        write_depth_png(f, np.clip(np.round(noisy * 1000.0), 0, 65535).astype(np.uint16))
+
+
+def make_kinect_room(path: str = KINECT_ROOM, frames: int = 300, seed: int = 1) -> str:
+    """The unseen room of the long and drift runs (made once: 300 frames, seed 1, 0.002 z^2 noise)."""
+    from jaxmap.synth.room import generate_room
+
+    if not os.path.isfile(os.path.join(path, "poses.txt")):
+        print(f"[bench] synthesizing a {frames}-frame room (seed {seed}) with 0.002 z^2 depth noise into {path}")
+        generate_room(path, seed=seed, n_frames=frames)
+        kinect_noise(path, 0.002, seed)
+    return path
+
+
+def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
+    """`jaxmap slam` on every `every`-th frame of `data`; with `compare`, also the maps of the same frames
+    built with the true poses and with the odometry poses."""
+    import time
+
+    from jaxmap.bench import base_overrides
+    from jaxmap.config import load_config, shipped_config_path
+    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence
+    from jaxmap.slam.run import SlamConfig, run_slam
+
+    os.makedirs(out, exist_ok=True)
+    over = base_overrides(args, data, os.path.join(out, "slam")) + [f"data.every_frame={every}"]
+    cfg = load_config(shipped_config_path("room_slam.yaml"), over, schema=SlamConfig)
+    t0 = time.perf_counter()
+    slam = run_slam(cfg, cfg.output)
+    res = {"frames": slam["frames"], "keyframes": slam["keyframes"], "every_frame": every,
+           "wall_s": time.perf_counter() - t0, "load_avg": os.getloadavg()[0],
+           "ate": {"odometry": slam.get("ate_odometry"), "slam": slam.get("ate_slam")},
+           "loops": slam["loops"], "recon": {"slam (remapped)": slam.get("metrics", {})},
+           "sizes": {k: slam[k] for k in ("map_bytes", "store_bytes", "keyframes")}}
+    if compare:
+        icfg = cfg.imt()
+        seq = open_run_sequence(icfg)
+        gt = mesh_and_evaluate(build_map(icfg, seq, desc="GT poses"), icfg, out, "mesh_gt.ply")
+        od = mesh_and_evaluate(build_map(icfg, seq, poses=np.asarray(slam_odometry(cfg.output)),
+                                         desc="odometry poses"), icfg, out, "mesh_odometry.ply")
+        res["recon"] = {"GT poses": gt.get("metrics", {}), "odometry poses": od.get("metrics", {}),
+                        **res["recon"]}
+    return res
+
+
+def _print_kinect(res: dict) -> None:
+    for name, r in res.items():
+        what = ("completes the shipped config" if name == "long" else
+                "keyframe-rate frames: the odometry drifts, loop closure must fix it")
+        print(f"\n{name}: jaxmap slam on {r['frames']} frames of the 300-frame Kinect-noise room (every "
+              f"{r['every_frame']}), {r['keyframes']} keyframes, {len(r['loops'])} loops, {r['wall_s']:.0f} s "
+              f"(load {r['load_avg']:.1f}); {what}")
+        print(f"{'trajectory (ATE)':22s} {'RMSE cm':>8s} {'mean cm':>8s} {'max cm':>7s} {'rot deg':>8s}")
+        for k, a in r["ate"].items():
+            if a:
+                print(f"{k:22s} {100 * a['rmse_m']:8.2f} {100 * a['mean_m']:8.2f} {100 * a['max_m']:7.2f} "
+                      f"{a['rot_rmse_deg']:8.3f}")
+        o, s_ = r["ate"].get("odometry"), r["ate"].get("slam")
+        if o and s_:
+            print(f"loop closure cuts the ATE RMSE by {100 * (1 - s_['rmse_m'] / o['rmse_m']):.0f} % (target >= 50 %)")
+        print(f"{'map':22s} {'Acc cm':>7s} {'Comp cm':>8s} {'C-L1 cm':>8s} {'CR %':>6s} {'F %':>6s}")
+        for k, m in r["recon"].items():
+            v = [m.get(c, float("nan")) for c in COLS]
+            print(f"{k:22s} {v[0]:7.2f} {v[1]:8.2f} {v[2]:8.2f} {v[3]:6.2f} {v[4]:6.2f}")
+        if "GT poses" in r["recon"]:
+            g = r["recon"]["GT poses"].get("chamfer_l1_cm", float("nan"))
+            m = r["recon"]["slam (remapped)"].get("chamfer_l1_cm", float("nan"))
+            print(f"slam (remapped) / GT-pose C-L1 = {m / g:.3f} (target <= 1.10)")
+        for lp in r["loops"]:
+            print(f"  loop at frame {lp['frame']}: pose graph {lp['optimize_s']:.3f} s, remap {lp['keyframes_moved']} of "
+                  f"{lp['keyframes']} keyframes in {lp['remap_s']:.2f} s")
 
 
 METHODS = {"kiss_icp": "KISS-ICP", "icp": "ICP (jaxmap)"}

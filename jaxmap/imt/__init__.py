@@ -5,15 +5,16 @@ The prior (`load_prior()`) turns the points and normals around a voxel into a la
 SDF mean and standard deviation (voxel units) that are exactly invariant to a common rotation.
 `rotate(tree, R)` rotates every `Vec`/`Jac`-marked leaf of a pytree (see `jaxmap.imt.vn`).
 
-The latent map (README: Architecture): `encode_frame` (a frame's local map on the world grid),
-`fuse` / `remove` (eq. 11), `transform` (eqs. 3-10, onto the global grid), `remap` (move the
-keyframes whose pose changed), `mesh` / `query` (decoded SDF, marching cubes); `ImtMapper` runs them
-over a sequence (`jaxmap imt`).
+The latent map (README: Architecture): `pool_cells` + `encode_keyframes` / `encode_frame` (a frame's
+local map on the world grid), `fuse` / `remove` (eq. 11 on sums), `transform` (eqs. 3-10, onto the
+global grid), `remap` (re-encode the keyframes whose pose changed), `mesh` / `query` (decoded SDF,
+marching cubes); `ImtMapper` runs them over a sequence (`jaxmap imt`).
 """
 from jaxmap.imt.decoder import Decoder, DecoderConfig
 from jaxmap.imt.encoder import Encoder, EncoderConfig, encode, encode_with_jacobian
 from jaxmap.imt.prior import Prior, PriorConfig, init_prior, load_prior, save_prior
-from jaxmap.imt.latent_map import LatentMap, VoxelBatch, encode_frame, encode_world, fuse, remove
+from jaxmap.imt.latent_map import (LatentMap, VoxelBatch, encode_cells, encode_frame, encode_keyframes, encode_world,
+                                   fuse, pool_cells, remove)
 from jaxmap.imt.meshing import mesh, query
 from jaxmap.imt.remap import KeyframeStore, RemapOptions, remap
 from jaxmap.imt.transform import transform, transform_batch
@@ -32,7 +33,8 @@ from jaxmap.imt.vn import (
 )
 
 __all__ = [
-    "KeyframeStore", "LatentMap", "RemapOptions", "VoxelBatch", "encode_frame", "encode_world", "fuse", "mesh",
+    "KeyframeStore", "LatentMap", "RemapOptions", "VoxelBatch", "encode_cells", "encode_frame", "encode_keyframes",
+    "encode_world", "fuse", "mesh", "pool_cells",
     "query", "remap", "remove", "transform", "transform_batch",
     "Decoder", "DecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",
     "VNLinear", "Vec", "encode", "encode_with_jacobian", "gram_upper", "init_prior", "invariant_features",

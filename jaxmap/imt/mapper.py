@@ -6,8 +6,9 @@
     mapper.mesh(); mapper.sdf(points_w); mapper.save(dir); ImtMapper.load(dir)
 
 Every added frame is preprocessed (crop, downsample to about voxel/4, PCA normals towards the
-sensor), encoded on the world grid with its pose (`encode_frame`), fused into the global map and
-kept as a keyframe (`KeyframeStore`) so that a later pose change can move it.
+sensor), pooled into cells on the world grid at its pose (`pool_cells`), encoded (`encode_keyframes`,
+the same function `remap` re-encodes with), fused into the global map (sums, no Jacobians) and its
+cells kept as a keyframe (`KeyframeStore`) so that a later pose change can move it.
 """
 from __future__ import annotations
 
@@ -18,18 +19,18 @@ import jax
 import numpy as np
 
 from jaxmap.config import ImtConfig, from_dict, to_dict
-from jaxmap.geometry import validate_pose
+from jaxmap.errors import DataError
+from jaxmap.geometry import transform_points, validate_pose
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.meshing import mesh as mesh_map
 from jaxmap.imt.meshing import query
-from jaxmap.imt.remap import KeyframeStore, RemapOptions, remap
+from jaxmap.imt.remap import KeyframeStore, RemapOptions, contributions, remap
 
 
 def remap_options(cfg: ImtConfig) -> RemapOptions:
     c = cfg.map
     return RemapOptions(min_rotation_deg=c.remap_min_rotation_deg, min_translation_m=c.remap_min_translation_m,
-                        method=c.interpolation, jacobian_sign=c.jacobian_sign,
-                        temperature=c.softmax_temperature, k=c.k_neighbours, splat_power=c.splat_power)
+                        min_points=c.min_points, rebuild_fraction=c.remap_rebuild_fraction)
 
 
 class ImtMapper:
@@ -55,27 +56,41 @@ class ImtMapper:
 
         return preprocess_scan(np.asarray(points_s, np.float32), self.cfg.preprocess)
 
-    def encode(self, points_s, normals_s, pose) -> lm.LatentMap:
-        """Local map of preprocessed points at `pose` (world grid)."""
+    def encode(self, points_s, normals_s, pose, with_jacobian: bool = True) -> lm.LatentMap:
+        """Local map of preprocessed points at `pose` (world grid), with Jacobians for `transform`."""
         c = self.cfg.map
-        return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points)
+        return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
+                               with_jacobian=with_jacobian, cells_per_voxel=c.cells_per_voxel)
 
-    def add_frame(self, points_s, pose, frame: int | None = None) -> dict:
-        """Encode, fuse and keep a frame. Returns its timings (s) and sizes."""
+    def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None) -> dict:
+        """Encode, fuse and keep a frame. Returns its timings (s) and sizes.
+
+        pose_source: where the pose came from, named by the error when it is not a rigid transform
+        (None: the user's pose file, and the error says how to fix it)."""
         pose = np.asarray(pose, np.float64)
-        validate_pose(pose, f"pose of frame {frame if frame is not None else len(self.store)}")
+        validate_pose(pose, f"pose of frame {frame if frame is not None else len(self.store)}", source=pose_source)
+        c = self.cfg.map
         t0 = time.perf_counter()
         pts, nrm = self.preprocess(points_s)
         t1 = time.perf_counter()
-        local = self.encode(pts, nrm, pose)
-        jax.block_until_ready(local.latent)
-        t2 = time.perf_counter()
-        self.map = lm.fuse(self.map, local)
-        jax.block_until_ready(self.map.latent)
+        pw = transform_points(pose, pts.astype(np.float64))
+        nw = np.asarray(nrm, np.float64) @ pose[:3, :3].T
+        cells, cnrm, cnt = lm.pool_cells(pw, nw, c.voxel_size_m, c.cells_per_voxel)
+        kf = self.store.add(len(self.store) if frame is None else frame, cells, cnrm, cnt, pose)
+        try:
+            # encode the stored cells (as `remap` will), so a later removal subtracts exactly this
+            local = contributions(self.prior, self.store, [kf], pose[None], c.voxel_size_m, c.min_points)
+            jax.block_until_ready(local.latent)
+            t2 = time.perf_counter()
+            self.map = lm.fuse(self.map, local)
+            jax.block_until_ready(self.map.latent_sum)
+        except BaseException:
+            self.store.pop()          # the store holds exactly the keyframes that are in the map
+            raise
         t3 = time.perf_counter()
-        self.store.add(len(self.store) if frame is None else frame, local, pose)
-        info = {"frame": int(self.store.frames[-1]), "points": int(len(pts)), "preprocess_s": t1 - t0,
-                "encode_s": t2 - t1, "fuse_s": t3 - t2, "local_voxels": local.num_active(),
+        info = {"frame": int(self.store.frames[-1]), "points": int(len(pts)), "cells": int(len(cells)),
+                "preprocess_s": t1 - t0, "encode_s": t2 - t1, "fuse_s": t3 - t2,
+                "local_voxels": int(np.count_nonzero(np.asarray(local.weight) > 0)),
                 "map_voxels": self.map.num_active()}
         self.timings.append(info)
         return info
@@ -83,8 +98,8 @@ class ImtMapper:
     def remap(self, new_poses) -> list[int]:
         """Move the keyframes whose pose changed ([K,4,4] new poses). Returns the ids that moved."""
         t0 = time.perf_counter()
-        self.map, changed = remap(self.map, self.store, new_poses, remap_options(self.cfg))
-        jax.block_until_ready(self.map.latent)
+        self.map, changed = remap(self.map, self.store, new_poses, self.prior, remap_options(self.cfg))
+        jax.block_until_ready(self.map.latent_sum)
         self.remaps.append({"keyframes": len(changed), "time_s": time.perf_counter() - t0})
         return changed
 
@@ -95,15 +110,16 @@ class ImtMapper:
                         c.min_component_faces)
 
     def sdf(self, points_w):
-        """(sdf [P] m, std [P] m, valid [P]) at world points [P,3]."""
-        return query(self.prior, self.map, points_w)
+        """(sdf [P] m, std [P] m, valid [P]) at world points [P,3]; voxels with at most mesh.min_weight are
+        not decoded (as for the mesh)."""
+        return query(self.prior, self.map, points_w, min_weight=self.cfg.mesh.min_weight)
 
     def keyframe_poses(self) -> np.ndarray:
         return self.store.poses()
 
     def sizes(self) -> dict:
         return {"map_bytes": self.map.nbytes(), "map_voxels": self.map.num_active(),
-                "store_bytes": self.store.nbytes(), "store_voxels": self.store.voxel_count(),
+                "store_bytes": self.store.nbytes(), "store_cells": self.store.cell_count(),
                 "keyframes": len(self.store)}
 
     # -- checkpoints (orbax) --
@@ -125,9 +141,12 @@ class ImtMapper:
         m = cls(cfg, prior)
         tree = read_tree(path)
         mp, t = tree["map"], tree["map"]["table"]
+        if "latent_sum" not in mp:
+            raise DataError(f"{path}: the latent map of this checkpoint was written by an older jaxmap (means and "
+                            "Jacobians); map the sequence again")
         m.map = lm.LatentMap(HashTable(np.asarray(t["keys"]), np.asarray(t["rows"]), np.asarray(t["count"])),
-                             np.asarray(mp["coords"]), np.asarray(mp["latent"]), np.asarray(mp["jac"]),
-                             np.asarray(mp["weight"]), cfg.map.voxel_size_m)
+                             np.asarray(mp["coords"]), np.asarray(mp["latent_sum"]), np.asarray(mp["weight"]), None,
+                             cfg.map.voxel_size_m)
         m.store = KeyframeStore.from_arrays({k: np.asarray(v) for k, v in tree["store"].items()})
         m.timings, m.remaps = meta.get("timings", []), meta.get("remaps", [])
         return m

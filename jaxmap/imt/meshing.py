@@ -34,12 +34,12 @@ def _tent(q):
 
 
 @jax.jit
-def _query_core(prior, m: LatentMap, points_w):
+def _query_core(prior, m: LatentMap, points_w, min_weight):
     vs = m.voxel_size
     u = points_w / vs - 0.5                                                 # [P, 3]
     vox = jnp.floor(u).astype(jnp.int32)[:, None] + jnp.asarray(CORNERS)[None]   # [P, 8, 3]
     rows = hashing.lookup(m.table, _keys4(vox.reshape(-1, 3))).reshape(vox.shape[:2])
-    ok = (rows >= 0) & (m.weight[jnp.maximum(rows, 0)] > 0)
+    ok = (rows >= 0) & (m.weight[jnp.maximum(rows, 0)] > jnp.maximum(min_weight, 0.0))  # weight floor
     q = u[:, None] - vox.astype(jnp.float32)                               # [P, 8, 3] voxel units
     w = jnp.where(ok, _tent(q), 0.0)                                         # [P, 8]
     mean, std = prior.decode(m.latent[jnp.maximum(rows, 0)], q)              # [P, 8]
@@ -48,11 +48,11 @@ def _query_core(prior, m: LatentMap, points_w):
     return jnp.sum(w * mean, -1) * inv * vs, jnp.sum(w * std, -1) * inv * vs, tot > 1e-6
 
 
-def query(prior, m: LatentMap, points_w, chunk: int = 1 << 15):
+def query(prior, m: LatentMap, points_w, chunk: int = 1 << 15, min_weight: float = 0.0):
     """SDF of the map at world points. points_w: [P, 3] float32 (metres, map frame).
 
-    Returns numpy `(sdf [P] metres, std [P] metres, valid [P] bool)`; invalid where no active voxel
-    covers the point (sdf and std are 0 there).
+    Returns numpy `(sdf [P] metres, std [P] metres, valid [P] bool)`; invalid where no voxel with weight
+    above `min_weight` covers the point (sdf and std are 0 there): low-weight voxels are not decoded.
     """
     points_w = np.asarray(points_w, np.float32).reshape(-1, 3)
     out = []
@@ -61,7 +61,7 @@ def query(prior, m: LatentMap, points_w, chunk: int = 1 << 15):
         n = len(p)
         pad = 1 << max(10, int(np.ceil(np.log2(n))))
         p = np.concatenate([p, np.zeros((pad - n, 3), np.float32)])
-        out.append([np.asarray(x)[:n] for x in _query_core(prior, m, p)])
+        out.append([np.asarray(x)[:n] for x in _query_core(prior, m, p, jnp.float32(min_weight))])
     if not out:
         return np.zeros(0, np.float32), np.zeros(0, np.float32), np.zeros(0, bool)
     return tuple(np.concatenate([o[i] for o in out]) for i in range(3))

@@ -63,12 +63,16 @@ def build_map(cfg: ImtConfig, seq, poses=None, progress: bool = True, mapper=Non
 
 def summarize(timings: list[dict], skip_first: int = 1) -> dict:
     rows = timings[skip_first:] if len(timings) > skip_first else timings
-    return {f"median_{k}": float(np.median([r[k] for r in rows])) if rows else float("nan")
-            for k in ("preprocess_s", "encode_s", "fuse_s")}
+    out = {f"median_{k}": float(np.median([r[k] for r in rows])) if rows else float("nan")
+           for k in ("preprocess_s", "encode_s", "fuse_s")}
+    out["empty_frames"] = int(sum(1 for r in timings if r.get("points", 1) == 0))  # nothing left to encode
+    return out
 
 
-def mesh_and_evaluate(mapper, cfg: ImtConfig, out_dir: str, name: str = "mesh.ply", evaluate: bool = True) -> dict:
-    """Write the mesh; metrics against the sequence's ground truth when it has one."""
+def mesh_and_evaluate(mapper, cfg: ImtConfig, out_dir: str, name: str = "mesh.ply", evaluate: bool = True,
+                      floor: bool = True) -> dict:
+    """Write the mesh; metrics against the sequence's ground truth when it has one (with the protocol
+    floor under "floor" unless floor=False)."""
     t0 = time.perf_counter()
     mesh = mapper.mesh()
     path = os.path.join(out_dir, name)
@@ -85,7 +89,8 @@ def mesh_and_evaluate(mapper, cfg: ImtConfig, out_dir: str, name: str = "mesh.pl
         out["metrics"] = evaluate_mesh_file(
             path, d.path, threshold_m=cfg.eval.threshold_m, cull_distance_m=cfg.eval.cull_distance_m,
             eval_radius_m=cfg.eval.eval_radius_m, n_samples=cfg.eval.n_samples, begin_frame=d.begin_frame,
-            end_frame=d.end_frame, every_frame=d.every_frame, min_range_m=p.min_range_m, max_range_m=p.max_range_m)
+            end_frame=d.end_frame, every_frame=d.every_frame, min_range_m=p.min_range_m, max_range_m=p.max_range_m,
+            floor=floor)
     return out
 
 
@@ -144,9 +149,11 @@ def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool 
 
 
 def cli_imt(args) -> int:
+    from jaxmap.rundir import claim
     from jaxmap.viewer import view_options
 
     cfg = config_from_args(args, ImtConfig)
-    summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
+    with claim(cfg.output, "imt", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
+        summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     print(json.dumps(summary))
     return 0

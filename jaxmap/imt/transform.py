@@ -16,7 +16,7 @@ and a pose `T = [R | t]` from frame A to the global frame. Then, per local voxel
      trilinear weights sharpened by a power (2 by default) and renormalised, `s_nm` (a partition of
      unity, so the total weight is conserved):
      `F_n = sum_m s_nm w_m F_n|m / sum_m s_nm w_m`, `w_n = sum_m s_nm w_m`. The splats are returned
-     as a `VoxelBatch` and summed by `fuse`, so batching many keyframes is a concatenation.
+     as a `VoxelBatch` and summed by `fuse`, so batching many local maps is a concatenation.
    * ``"softmax"`` (the paper's eq. 9-10): every global voxel within one voxel of some `c'_m` gathers
      its K nearest local voxels by lattice lookup in the local map's hash table (the 27 lattice
      neighbours of `T^-1 c_n`, K of them kept by distance), `s_nm = softmax(-|t_nm|^2 / temperature)`,
@@ -29,6 +29,7 @@ Everything runs inside `jit` with static shapes: the output of a map with R rows
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -37,20 +38,15 @@ import numpy as np
 
 from jaxmap.grid import hashing
 from jaxmap.imt.latent_map import CORNERS, LatentMap, VoxelBatch, _keys4, empty, fuse
-from jaxmap.imt.vn import Jac, Vec, rotate
+from jaxmap.imt.vn import rotate
 
 METHODS = ("trilinear", "softmax")
 _NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1)], np.int32)
 
 
-def _rotate_batch(latent, jac, R):
-    out = rotate({"F": Vec(latent), "J": Jac(jac)}, R)
-    return out["F"].value, out["J"].value
-
-
-@functools.partial(jax.jit, static_argnames=("voxel_size", "jacobian_sign", "power"))
+@functools.partial(jax.jit, static_argnames=("voxel_size", "jacobian_sign", "power", "keep_jacobian"))
 def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sign: float = -1.0,
-                    power: float = 2.0) -> VoxelBatch:
+                    power: float = 2.0, keep_jacobian: bool = False) -> VoxelBatch:
     """Trilinear splats of a voxel batch moved by `T` ([4, 4], frame of b -> global).
 
     power: the 8 trilinear weights of a local voxel are raised to this power and renormalised to
@@ -59,7 +55,9 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     against plain trilinear weights, `jaxmap bench imt`).
 
     b: [P] entries -> [8P] entries on the global grid (fuse them, or aggregate with `transform`).
-    `T` may also be [P, 4, 4] (one pose per entry: many keyframes at once).
+    `T` may also be [P, 4, 4] (one pose per entry: many keyframes at once). The rotation of the latents
+    and Jacobians is `vn.rotate` of the batch itself (its fields are marked), mapped over the entries.
+    keep_jacobian: give each splat the rotated Jacobian too (for a map that will be transformed again).
     """
     T = jnp.asarray(T, jnp.float32)
     if T.ndim == 2:
@@ -69,7 +67,8 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     u = (jnp.einsum("pij,pj->pi", R, c) + t) / voxel_size - 0.5            # [P, 3] continuous global index
     base = jnp.floor(u)
     frac = u - base
-    lat, jac = jax.vmap(_rotate_batch)(b.latent, b.jac, R)                 # F R^T, R J R^T per entry
+    rb = jax.vmap(rotate)(b, R)                                             # F R^T, R J R^T per entry
+    lat, jac = rb.latent, rb.jac
     corners = jnp.asarray(CORNERS, jnp.float32)                            # [8, 3]
     s = jnp.prod(jnp.where(corners[None] > 0, frac[:, None], 1.0 - frac[:, None]), axis=-1)  # [P, 8]
     if power != 1.0:
@@ -81,8 +80,10 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     w = s * b.weight[:, None]                                              # [P, 8]
     valid = b.valid[:, None] & (b.weight[:, None] > 0) & (s > 1e-6)
     coords = (base[:, None] + corners[None]).astype(jnp.int32)
-    return VoxelBatch(coords.reshape(p * 8, 3), lat_n.reshape((p * 8,) + lat.shape[1:]),
-                      jnp.broadcast_to(jac[:, None], (p, 8) + jac.shape[1:]).reshape((p * 8,) + jac.shape[1:]),
+    jac_n = None
+    if keep_jacobian:
+        jac_n = jnp.broadcast_to(jac[:, None], (p, 8) + jac.shape[1:]).reshape((p * 8,) + jac.shape[1:])
+    return VoxelBatch(coords.reshape(p * 8, 3), lat_n.reshape((p * 8,) + lat.shape[1:]), jac_n,
                       w.reshape(p * 8), valid.reshape(p * 8))
 
 
@@ -120,7 +121,8 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     logits = jnp.where(okk, -d2k / temperature, -jnp.inf)
     s = jax.nn.softmax(jnp.where(okk.any(-1, keepdims=True), logits, 0.0), axis=-1) * okk   # [8R, K]
     rk = jnp.maximum(rk, 0)
-    lat, jac = _rotate_batch(m.latent[rk], m.jac[rk], R)                    # [8R, K, C, 3], [8R, K, C, 3, 3]
+    mr = rotate(m, R)                                                       # the map's marked fields, F R^T, R J R^T
+    lat, jac = mr.latent[rk], mr.jac[rk]                                    # [8R, K, C, 3], [8R, K, C, 3, 3]
     tnm = (x[:, None] - nb.astype(jnp.float32)[jnp.arange(nb.shape[0])[:, None], idx]) @ R.T   # world frame
     lat_n = lat + jacobian_sign * jnp.einsum("nmcak,nmk->nmca", jac, tnm)
     latent = jnp.einsum("nm,nmca->nca", s, lat_n)
@@ -139,24 +141,34 @@ def transform(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: floa
     splat_power: trilinear only, see `splat_trilinear` (1 = plain trilinear weights).
     Returns a new `LatentMap` on the global grid (same voxel size).
     """
+    keep = m.jac_sum is not None
     b = transform_batch(m, T, method=method, jacobian_sign=jacobian_sign, temperature=temperature, k=k,
-                        splat_power=splat_power)
+                        splat_power=splat_power, keep_jacobian=keep)
     # Splats reach ~2x as many voxels as the map has; start there so the table grows at most once.
     cap = 1 << max(10, int(np.ceil(np.log2(4 * max(m.num_active(), 1)))))
-    return fuse(empty(m.voxel_size, capacity=cap, channels=m.channels), b, log=False)
+    return fuse(empty(m.voxel_size, capacity=cap, channels=m.channels, with_jacobian=keep), b, log=False)
 
 
 def transform_batch(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: float = -1.0,
-                    temperature: float = 1.0, k: int = 8, splat_power: float = 2.0) -> VoxelBatch:
-    """Like `transform`, but returns the global-grid contribution as a `VoxelBatch` to `fuse`/`remove`."""
+                    temperature: float = 1.0, k: int = 8, splat_power: float = 2.0,
+                    keep_jacobian: bool = False) -> VoxelBatch:
+    """Like `transform`, but returns the global-grid contribution as a `VoxelBatch` to `fuse`/`remove`
+    (with Jacobians only if `keep_jacobian`). `m` must carry Jacobians unless jacobian_sign is 0."""
     if method not in METHODS:
         raise ValueError(f"unknown interpolation method {method!r}; choose one of {METHODS}")
     T = np.asarray(T, np.float32)
     if T.shape != (4, 4):
         raise ValueError(f"T must be [4,4], got {T.shape}")
+    if m.jac_sum is None and jacobian_sign != 0:
+        raise ValueError("transform: this map has no Jacobians (encode with with_jacobian=True, or jacobian_sign=0)")
+    if m.jac_sum is None:
+        m = dataclasses.replace(m, jac_sum=jnp.zeros(m.latent_sum.shape + (3,), jnp.float32))
     if method == "trilinear":
-        return splat_trilinear(m.as_batch(), T, m.voxel_size, float(jacobian_sign), float(splat_power))
+        return splat_trilinear(m.as_batch(), T, m.voxel_size, float(jacobian_sign), float(splat_power),
+                               bool(keep_jacobian))
     out, overflow = _softmax_core(m, T, jnp.float32(temperature), float(jacobian_sign), int(k))
+    if not keep_jacobian:
+        out = dataclasses.replace(out, jac=None)
     if bool(overflow):  # 16x slots for at most 8x keys: only an adversarial hash clustering gets here
         raise hashing.CapacityError("transform: the scratch table of candidate voxels overflowed")
     return out

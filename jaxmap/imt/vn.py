@@ -21,15 +21,23 @@ Layers (flax.linen):
   (upper triangle of the Gram matrix `F F^T`), and, given a query vector `q`, `F q` and `|q|^2`.
   These are unchanged by `F -> F R^T, q -> R q` for every orthogonal `R`.
 
-Rotation of pytrees, `rotate(tree, R)`: a leaf is a vector only if it is explicitly marked, by
-wrapping the array in `Vec` (rows of 3-vectors, `[..., 3]`, rotated as `v -> v R^T`) or `Jac`
-(Jacobians `[..., 3, 3]` of a vector w.r.t. a translation, rotated as `J -> R J R^T`). Plain arrays
-are never touched, even when their last axis happens to be 3 (voxel centres are *points*; they are
-transformed by the full pose elsewhere, and counts or SDF values are scalars). `Vec` and `Jac` are
-pytree nodes, so marked leaves pass through `jax.jit`, `vmap`, `tree_map` and orbax unchanged.
+Rotation of pytrees, `rotate(tree, R)` (jaxlie's idea: the group acts on whatever pytree holds its
+elements, by a tree map that dispatches on a mark): a leaf is a vector only if it is explicitly
+marked, either
+
+* as a field of a dataclass, with `vector_field()` / `jacobian_field()` (the latent fields of
+  `LatentMap` and `VoxelBatch` are declared this way), or
+* by wrapping an array in `Vec` (rows of 3-vectors, `[..., 3]`, rotated as `v -> v R^T`) or `Jac`
+  (Jacobians `[..., 3, 3]` of a vector w.r.t. a translation, rotated as `J -> R J R^T`).
+
+Plain arrays are never touched, even when their last axis happens to be 3 (voxel centres are
+*points*; they are transformed by the full pose elsewhere, and counts or SDF values are scalars).
+A tree with no marked leaf at all raises: rotating it would silently do nothing. `Vec` and `Jac`
+are pytree nodes, so marked leaves pass through `jax.jit`, `vmap`, `tree_map` and orbax unchanged.
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import flax.linen as nn
@@ -162,8 +170,28 @@ class Jac:
     value: Any
 
 
+ROTATION = "rotation"   # dataclass field metadata key: "vec" or "jac"
+
+
+def vector_field(**kwargs):
+    """A dataclass field holding rows of 3-vectors `[..., 3]` (rotated as `v R^T` by `rotate`)."""
+    return flax.struct.field(metadata={ROTATION: "vec"}, **kwargs)
+
+
+def jacobian_field(**kwargs):
+    """A dataclass field holding translation Jacobians `[..., 3, 3]` (rotated as `R J R^T`); may be None."""
+    return flax.struct.field(metadata={ROTATION: "jac"}, **kwargs)
+
+
+def _marks(x) -> dict:
+    """{field name: "vec" | "jac"} of a dataclass instance (empty for anything else)."""
+    if not dataclasses.is_dataclass(x) or isinstance(x, type):
+        return {}
+    return {f.name: f.metadata[ROTATION] for f in dataclasses.fields(x) if ROTATION in f.metadata}
+
+
 def _is_marked(x) -> bool:
-    return isinstance(x, (Vec, Jac))
+    return isinstance(x, (Vec, Jac)) or bool(_marks(x))
 
 
 def rotate_vectors(v: jax.Array, R: jax.Array) -> jax.Array:
@@ -178,22 +206,53 @@ def rotate_jacobians(j: jax.Array, R: jax.Array) -> jax.Array:
     return jnp.einsum("ab,...bc,dc->...ad", R, j, R)
 
 
+def _rotate_leaf(kind: str, v, R):
+    if v is None:
+        return None, 0
+    if kind == "vec":
+        if v.shape[-1] != 3:
+            raise ValueError(f"Vec leaf must have last axis 3, got shape {v.shape}")
+        return rotate_vectors(v, R), 1
+    if v.shape[-2:] != (3, 3):
+        raise ValueError(f"Jac leaf must end in [3, 3], got shape {v.shape}")
+    return rotate_jacobians(v, R), 1
+
+
 def rotate(tree: Any, R: jax.Array) -> Any:
     """Apply the rotation `R [3,3]` to every marked leaf of a pytree and leave everything else as is.
 
-    `Vec(v)` becomes `Vec(v R^T)`, `Jac(J)` becomes `Jac(R J R^T)`; unmarked leaves (including
-    arrays whose last axis is 3) are returned unchanged (same objects). Works inside `jit`.
+    `Vec(v)` becomes `Vec(v R^T)`, `Jac(J)` becomes `Jac(R J R^T)`, and so do the `vector_field` /
+    `jacobian_field` fields of dataclasses anywhere in the tree (a None field stays None); unmarked
+    leaves (including arrays whose last axis is 3) are returned unchanged (same objects). Works inside
+    `jit` and `vmap`. Raises ValueError when the tree holds no marked leaf.
     """
+    found = [0]
 
     def act(x):
-        if isinstance(x, Vec):
-            if x.value.shape[-1] != 3:
-                raise ValueError(f"Vec leaf must have last axis 3, got shape {x.value.shape}")
-            return Vec(rotate_vectors(x.value, R))
-        if isinstance(x, Jac):
-            if x.value.shape[-2:] != (3, 3):
-                raise ValueError(f"Jac leaf must end in [3, 3], got shape {x.value.shape}")
-            return Jac(rotate_jacobians(x.value, R))
-        return x
+        if isinstance(x, (Vec, Jac)):
+            v, n = _rotate_leaf("vec" if isinstance(x, Vec) else "jac", x.value, R)
+            found[0] += n
+            return type(x)(v)
+        if not _marks(x):
+            return x
+        changes = {}
+        for f in dataclasses.fields(x):
+            kind = f.metadata.get(ROTATION)
+            if kind is not None:
+                changes[f.name], n = _rotate_leaf(kind, getattr(x, f.name), R)
+                found[0] += n
+            elif f.metadata.get("pytree_node", True):
+                sub = getattr(x, f.name)
+                if _has_marks(sub):
+                    changes[f.name] = jax.tree_util.tree_map(act, sub, is_leaf=_is_marked)
+        return dataclasses.replace(x, **changes)
 
-    return jax.tree_util.tree_map(act, tree, is_leaf=_is_marked)
+    out = jax.tree_util.tree_map(act, tree, is_leaf=_is_marked)
+    if not found[0]:
+        raise ValueError("rotate: the tree has no Vec/Jac-marked leaf (nor a vector_field/jacobian_field), so a "
+                         "rotation would leave it unchanged; mark the leaves that are vectors or Jacobians")
+    return out
+
+
+def _has_marks(tree) -> bool:
+    return any(_is_marked(x) for x in jax.tree_util.tree_leaves(tree, is_leaf=_is_marked))

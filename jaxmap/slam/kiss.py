@@ -25,6 +25,7 @@ import logging
 import numpy as np
 
 from jaxmap.errors import JaxmapError
+from jaxmap.geometry import orthonormalize
 from jaxmap.slam.odometry import OdometryConfig, OdomStep, Scan, quiet_open3d, to_o3d
 
 log = logging.getLogger("jaxmap")
@@ -74,11 +75,11 @@ class KissOdometry:
         self.last = scan
         pts = np.ascontiguousarray(np.asarray(points_s, dtype=np.float64).reshape(-1, 3))
         self.kiss.register_frame(pts, np.empty((0,), dtype=np.float64))
-        self.pose = self.C @ self.T0 @ self.kiss.last_pose
+        self.pose = orthonormalize(self.C @ self.T0 @ np.asarray(self.kiss.last_pose, dtype=np.float64))
         if self.prev is None:
             self.prev = scan
             return OdomStep(self.pose.copy(), np.eye(4), 1.0, 0.0, True, np.eye(6))
-        rel = np.array(self.kiss.last_delta, dtype=np.float64)
+        rel = orthonormalize(np.array(self.kiss.last_delta, dtype=np.float64))
         fitness, rmse, info = self._quality(scan, self.prev, rel)
         ok = fitness >= cfg.min_fitness and rmse <= cfg.max_rmse_m
         if not ok:
@@ -103,8 +104,8 @@ class KissOdometry:
 
     def correct(self, T_corr: np.ndarray) -> None:
         """Apply a world-frame correction: pose <- T_corr @ pose (KISS-ICP's local map is untouched)."""
-        self.C = np.asarray(T_corr, dtype=np.float64) @ self.C
-        self.pose = np.asarray(T_corr, dtype=np.float64) @ self.pose
+        self.C = orthonormalize(np.asarray(T_corr, dtype=np.float64) @ self.C)
+        self.pose = orthonormalize(np.asarray(T_corr, dtype=np.float64) @ self.pose)
 
 
 def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tuple[np.ndarray, float]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxmap.geometry import pose_change
+from jaxmap.geometry import orthonormalize, pose_change
 from jaxmap.preprocess import crop, estimate_normals, voxel_downsample
 
 log = logging.getLogger("jaxmap")
@@ -83,7 +83,7 @@ def icp(source_pts, source_normals, target_pts, target_normals, init, max_corr_m
     with quiet_open3d():
         res = reg.registration_icp(src, tgt, float(max_corr_m), np.asarray(init, dtype=np.float64), est,
                                    reg.ICPConvergenceCriteria(max_iteration=int(max_iter)))
-        T = np.array(res.transformation, dtype=np.float64)
+        T = orthonormalize(np.array(res.transformation, dtype=np.float64))
         info = np.array(reg.get_information_matrix_from_point_clouds(src, tgt, float(max_corr_m), T))
     return IcpResult(T=T, fitness=float(res.fitness), inlier_rmse=float(res.inlier_rmse),
                      n_corr=int(len(res.correspondence_set)), information=info)
@@ -277,7 +277,7 @@ class Odometry:
                             res.fitness, cfg.min_fitness, res.inlier_rmse, cfg.max_rmse_m, dist, np.degrees(ang))
         rel = res.T if ok else prior.copy()
         self.velocity = rel
-        self.pose = self.pose @ rel
+        self.pose = orthonormalize(self.pose @ rel)   # chained products drift off SO(3) otherwise
         self.prev = scan
         return OdomStep(self.pose.copy(), rel.copy(), res.fitness if res else 0.0, res.inlier_rmse if res else np.inf,
                         ok, res.information if ok else np.eye(6))
@@ -286,7 +286,7 @@ class Odometry:
         """Apply a world-frame correction (e.g. from a pose-graph optimisation): pose <- T_corr @ pose.
 
         The velocity (a relative motion) is unchanged, so tracking continues smoothly from the new pose."""
-        self.pose = np.asarray(T_corr, dtype=np.float64) @ self.pose
+        self.pose = orthonormalize(np.asarray(T_corr, dtype=np.float64) @ self.pose)
 
 
 ODOMETRY_METHODS = ("icp", "kiss_icp")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxmap.geometry import pose_change, se3_inverse
+from jaxmap.geometry import orthonormalize, pose_change, se3_inverse
 from jaxmap.slam.odometry import quiet_open3d
 
 
@@ -31,14 +31,14 @@ class PoseGraph:
 
     def add_node(self, pose) -> int:
         """Append a node with initial pose [4,4] T_world_node; returns its id."""
-        self.poses.append(np.array(pose, dtype=np.float64))
+        self.poses.append(orthonormalize(np.array(pose, dtype=np.float64)))
         return len(self.poses) - 1
 
     def _add_edge(self, i, j, T_ij, information, loop):
         n = len(self.poses)
         if not (0 <= i < n and 0 <= j < n) or i == j:
             raise ValueError(f"pose graph edge ({i}, {j}): nodes must be distinct ids in [0, {n})")
-        self.edges.append((int(i), int(j), np.array(T_ij, dtype=np.float64),
+        self.edges.append((int(i), int(j), orthonormalize(np.array(T_ij, dtype=np.float64)),
                            np.array(information, dtype=np.float64), bool(loop)))
 
     def add_odometry(self, i: int, j: int, T_ij, information) -> None:
@@ -85,7 +85,7 @@ class PoseGraph:
         criteria.max_iteration = int(max_iteration)
         with quiet_open3d():
             reg.global_optimization(g, reg.GlobalOptimizationLevenbergMarquardt(), criteria, option)
-        self.poses = [np.array(n.pose, dtype=np.float64) for n in g.nodes]
+        self.poses = [orthonormalize(np.array(n.pose, dtype=np.float64)) for n in g.nodes]  # LM leaves ~1e-3 off SO(3)
         # Which loop edges survived: match the remaining uncertain edges by their node pair.
         kept = {(e.target_node_id, e.source_node_id): e.confidence for e in g.edges if e.uncertain}
         self.loop_confidence = {k: float(kept.get((i, j), 0.0))

@@ -36,10 +36,22 @@ import numpy as np
 
 from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig,
                            PreprocessConfig, config_from_args, load_config, save_config)
-from jaxmap.errors import DataError
+from jaxmap.errors import DataError, JaxmapError
+from jaxmap.geometry import orthonormalize
 from jaxmap.slam.frontend import FrontEndConfig
 
 log = logging.getLogger("jaxmap")
+
+
+def _register_rules() -> None:
+    """Value rules of the front end's config keys, checked at load (see `jaxmap.config.RULES`)."""
+    from jaxmap.config import at_least, one_of, register_rules
+    from jaxmap.slam.odometry import ODOMETRY_METHODS, OdometryConfig
+
+    register_rules(OdometryConfig, method=one_of(*ODOMETRY_METHODS), max_iter=at_least(1), normals_k=at_least(3))
+
+
+_register_rules()
 
 
 @dataclass(frozen=True)
@@ -81,17 +93,20 @@ def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
     bar = _bar(len(seq), "slam", progress)
     for i in range(len(seq)):
         fr = seq.frame(i)
-        r = fe.add_frame(fr.points)
-        # odometry alone: the chain of frame-to-frame motions (the velocity of the step just made),
-        # which loop corrections do not touch
-        odo.append(fr.pose.copy() if i == 0 else odo[-1] @ fe.odometry.velocity)
-        if r.is_keyframe:
-            mapper.add_frame(fr.points, r.pose, frame=fr.index)
-            if r.optimized:
-                loops.append(_close_loop(cfg, mapper, r.keyframe_poses, out_dir, len(loops),
-                                         {"frame": int(fr.index), "keyframe": int(r.keyframe_id),
-                                          "optimize_s": r.timings["optimize_s"],
-                                          "fitness": float(r.loop.fitness), "rmse_m": float(r.loop.rmse)}))
+        try:
+            r = fe.add_frame(fr.points)
+            # odometry alone: the chain of frame-to-frame motions (the velocity of the step just made),
+            # which loop corrections do not touch
+            odo.append(fr.pose.copy() if i == 0 else orthonormalize(odo[-1] @ fe.odometry.velocity))
+            if r.is_keyframe:
+                mapper.add_frame(fr.points, r.pose, frame=fr.index, pose_source="jaxmap's SLAM front end")
+                if r.optimized:
+                    loops.append(_close_loop(cfg, mapper, r.keyframe_poses, out_dir, len(loops),
+                                             {"frame": int(fr.index), "keyframe": int(r.keyframe_id),
+                                              "optimize_s": r.timings["optimize_s"],
+                                              "fitness": float(r.loop.fitness), "rmse_m": float(r.loop.rmse)}))
+        except Exception as e:  # the front end or the mapper failed: keep what was mapped, say where
+            raise _failed_at(mapper, out_dir, int(fr.index), e) from e
         if hooks is not None:
             _view_frame(hooks, fe, fr, r, mapper)
         if bar is not None:
@@ -101,6 +116,18 @@ def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
         bar.close()
     return {"trajectory": fe.trajectory(), "odometry": np.asarray(odo), "loops": loops,
             "keyframe_frames": list(mapper.store.frames)}
+
+
+def _failed_at(mapper, out_dir: str, frame: int, err: Exception) -> JaxmapError:
+    """Save the map of the keyframes before `frame` and return the error that names the frame."""
+    log.error("jaxmap slam: frame %d failed", frame, exc_info=err)
+    path = os.path.join(out_dir, "checkpoint")
+    try:
+        mapper.save(path)
+        saved = f"the map of the {len(mapper.store)} keyframes before it is saved in {path} (`ImtMapper.load`)"
+    except Exception as e2:  # noqa: BLE001 - the first error is the one to report
+        saved = f"saving a checkpoint failed too ({type(e2).__name__}: {e2})"
+    return JaxmapError(f"jaxmap slam failed at frame {frame}: {type(err).__name__}: {err}; {saved}")
 
 
 def _view_frame(hooks, fe, fr, r, mapper) -> None:
@@ -262,9 +289,11 @@ def _jsonable(x):
 
 def cli_slam(args) -> int:
     cfg = config_from_args(args, SlamConfig)
+    from jaxmap.rundir import claim
     from jaxmap.viewer import view_options
 
-    out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
+    with claim(cfg.output, "slam", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
+        out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
     brief["loops"] = len(out["loops"])
     for k in ("ate_odometry", "ate_slam"):
