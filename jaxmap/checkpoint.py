@@ -1,26 +1,44 @@
-"""Atomic checkpoints of a state pytree plus a small JSON of metadata (orbax underneath).
+"""Checkpoints that survive damage: the last two saves of a state pytree, each checksummed (orbax underneath).
 
-Layout of a checkpoint directory:
-  state/        orbax PyTree checkpoint of the state (N3: `jaxmap.n3.core.N3State`; IMT: the latent map)
-  meta.json     what is needed to rebuild it: the config, capacities, per-frame timings so far
-Writes go to a temporary directory that is renamed into place, so an interrupted save never
-leaves a half-written checkpoint behind. The mappers' own modules (`jaxmap.n3.checkpoint`, the
-IMT mapper) build on `save_tree` / `read_meta`; this module imports none of them.
+Layout of a checkpoint directory (`RUN/checkpoint`), one subdirectory per save, named by its step (the
+frames mapped, for N3), as orbax's CheckpointManager names them:
+
+  <step>/state/          orbax PyTree checkpoint of the state (N3: `jaxmap.n3.core.N3State`; IMT: the latent map)
+  <step>/meta.json       what is needed to rebuild it: the config, capacities, per-frame timings so far
+  <step>/manifest.json   the step and the size and SHA-256 of every other file of `<step>/`, written last
+
+A save goes to `<step>.tmp` and is renamed into place once complete, so a save cut short (kill -9, a
+full disk) never looks like a checkpoint. After each save the newest `KEEP` (2) checkpoints up to that
+step are kept; older ones, and any of a later step (a damaged future the run went back from), are deleted.
+
+Loading (`load`, `read_meta`) checks the newest checkpoint's files against its manifest first; when
+one is missing, truncated or altered, it warns and falls back to the previous checkpoint. No
+checkpoint at all is a `NoCheckpointError`, only damaged ones a `CheckpointError` naming each one's
+fault. A directory written by jaxmap <= 0.1 (`state/` + `meta.json` directly in it, no manifest) is
+still read, unchecked. The mappers' own modules (`jaxmap.n3.checkpoint`, the IMT mapper) build on
+`save_tree` / `load` / `read_meta` / `read_tree`; this module imports none of them.
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import logging
 import os
 import shutil
+from typing import Callable, TypeVar
 
 import jax
 
-from jaxmap.errors import DataError
+from jaxmap.errors import CheckpointError, NoCheckpointError
+
+log = logging.getLogger("jaxmap")
+
+KEEP = 2
+MANIFEST = "manifest.json"
+T = TypeVar("T")
 
 
 def _checkpointer():
-    import logging
-
     import orbax.checkpoint as ocp
 
     logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every rename at INFO
@@ -28,34 +46,163 @@ def _checkpointer():
     return ocp.PyTreeCheckpointer()
 
 
-def save_tree(path: str, tree, meta: dict) -> None:
-    """Write `tree` (an orbax PyTree, under `state/`) and `meta` (`meta.json`) to directory `path`
-    atomically: into `path.tmp`, renamed over any older checkpoint only once complete."""
+def _sha256(path: str) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _files(root: str) -> list[str]:
+    """Every file under `root` but the manifest, as sorted paths relative to it."""
+    out = []
+    for d, _, names in os.walk(root):
+        out += [os.path.relpath(os.path.join(d, n), root) for n in names]
+    return sorted(f for f in out if f != MANIFEST)
+
+
+def manifest(root: str, step: int) -> dict:
+    """{"step", "files": {relative path: {"size", "sha256"}}} of every file under `root`."""
+    files = {}
+    for rel in _files(root):
+        p = os.path.join(root, rel)
+        files[rel] = {"size": os.path.getsize(p), "sha256": _sha256(p)}
+    return {"step": int(step), "files": files}
+
+
+def steps(path: str) -> list[int]:
+    """Steps of the complete checkpoints in directory `path`, newest first (unfinished `.tmp` saves left out)."""
+    if not os.path.isdir(path):
+        return []
+    return sorted((int(n) for n in os.listdir(path) if n.isdigit() and os.path.isdir(os.path.join(path, n))),
+                  reverse=True)
+
+
+def save_tree(path: str, tree, meta: dict, step: int | None = None, keep: int = KEEP) -> str:
+    """Write `tree` (an orbax PyTree, under `state/`) and `meta` (`meta.json`) as checkpoint `step` of
+    directory `path` (default: one past the newest there), with its manifest; keep the newest `keep`.
+    Returns the checkpoint's directory `path/<step>`."""
     path = os.path.abspath(path)  # orbax only takes absolute paths
-    tmp = path + ".tmp"
+    if step is None:
+        have = steps(path)
+        step = have[0] + 1 if have else 0
+    os.makedirs(path, exist_ok=True)
+    final, tmp = os.path.join(path, str(int(step))), os.path.join(path, f"{int(step)}.tmp")
     if os.path.exists(tmp):
         shutil.rmtree(tmp)
     os.makedirs(tmp)
     _checkpointer().save(os.path.join(tmp, "state"), jax.device_get(tree))
     with open(os.path.join(tmp, "meta.json"), "w") as f:
-        json.dump(meta, f)
-    if os.path.exists(path):
-        shutil.rmtree(path)
-    os.replace(tmp, path)
+        json.dump({**meta, "step": int(step)}, f)
+    with open(os.path.join(tmp, MANIFEST), "w") as f:
+        json.dump(manifest(tmp, step), f)
+    if os.path.exists(final):  # the same step saved again (e.g. a finished run resumed): replace it
+        old = final + ".old"
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(final, old)
+        os.replace(tmp, final)
+        shutil.rmtree(old)
+    else:
+        os.replace(tmp, final)
+    _prune(path, int(step), keep)
+    return final
 
 
-def read_tree(path: str):
-    """The `state/` tree of checkpoint directory `path` (written by `save_tree`) as numpy arrays, in
-    the nested dicts orbax stores; the caller rebuilds its own types."""
-    return _checkpointer().restore(os.path.join(os.path.abspath(path), "state"))
+def _prune(path: str, step: int, keep: int) -> None:
+    """Delete checkpoints beyond the newest `keep` up to `step`, those after `step`, and stale `.tmp`/`.old`."""
+    kept = [s for s in steps(path) if s <= step][:keep]
+    for name in os.listdir(path):
+        full = os.path.join(path, name)
+        if (name.isdigit() and int(name) not in kept) or name.endswith((".tmp", ".old")):
+            shutil.rmtree(full, ignore_errors=True)
+
+
+def verify(ckpt: str) -> dict:
+    """meta.json of checkpoint directory `ckpt` (`path/<step>`) once every file matches its manifest;
+    CheckpointError naming the first file that is missing, truncated or altered."""
+    mpath = os.path.join(ckpt, MANIFEST)
+    if not os.path.isfile(mpath):
+        raise CheckpointError(f"{ckpt}: no {MANIFEST} (an unfinished or foreign save)")
+    try:
+        with open(mpath) as f:
+            files = json.load(f)["files"]
+    except (OSError, ValueError, KeyError, TypeError):
+        raise CheckpointError(f"{mpath}: unreadable (truncated or altered)") from None
+    for rel, want in files.items():
+        p = os.path.join(ckpt, rel)
+        if not os.path.isfile(p):
+            raise CheckpointError(f"{p}: missing")
+        if os.path.getsize(p) != want["size"]:
+            raise CheckpointError(f"{p}: {os.path.getsize(p)} bytes, {want['size']} when saved (truncated)")
+        if _sha256(p) != want["sha256"]:
+            raise CheckpointError(f"{p}: checksum mismatch (the file was altered after the save)")
+    return _read_json(os.path.join(ckpt, "meta.json"))
+
+
+def _read_json(path: str) -> dict:
+    try:
+        with open(path) as f:
+            return json.load(f)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: missing") from None
+    except (OSError, ValueError) as e:
+        raise CheckpointError(f"{path}: unreadable ({e})") from None
+
+
+def _is_single(path: str) -> bool:
+    """Is `path` itself one checkpoint (a `<step>` directory, or jaxmap <= 0.1's unnumbered layout)?"""
+    return os.path.isfile(os.path.join(path, MANIFEST)) or os.path.isfile(os.path.join(path, "meta.json"))
+
+
+def candidates(path: str, what: str = "jaxmap") -> list[str]:
+    """Checkpoint directories of `path`, newest first; NoCheckpointError when there is none."""
+    path = os.path.abspath(path)
+    if _is_single(path):
+        return [path]
+    found = [os.path.join(path, str(s)) for s in steps(path)]
+    if not found:
+        where = "does not exist" if not os.path.exists(path) else "holds no checkpoint"
+        raise NoCheckpointError(f"{path}: {where}; no {what} checkpoint was saved there")
+    return found
+
+
+def load(path: str, build: Callable[[str, dict], T], what: str = "jaxmap") -> T:
+    """`build(checkpoint dir, meta)` of the newest checkpoint in `path` that passes `verify` and builds
+    (`build` raises CheckpointError when its contents are unusable). Falls back to an older one with
+    a warning; CheckpointError listing every checkpoint's fault when none is usable."""
+    faults = []
+    for ckpt in candidates(path, what):
+        try:
+            meta = verify(ckpt) if os.path.isfile(os.path.join(ckpt, MANIFEST)) else _read_json(
+                os.path.join(ckpt, "meta.json"))  # jaxmap <= 0.1: no manifest to check against
+            out = build(ckpt, meta)
+        except CheckpointError as e:
+            faults.append(str(e))
+            continue
+        if faults:
+            log.warning("%s; using the previous checkpoint %s (step %s) instead", "; ".join(faults), ckpt,
+                        meta.get("step", meta.get("frame", "?")))
+        return out
+    err = CheckpointError(f"no usable {what} checkpoint in {os.path.abspath(path)}: " + "; ".join(faults))
+    err.faults = faults  # what is wrong with each one, newest first (for callers that word the error themselves)
+    raise err
 
 
 def read_meta(path: str, what: str = "jaxmap") -> tuple[str, dict]:
-    """`(absolute path, meta.json contents)` of a checkpoint written by `save_tree`; a clear error
-    when `path` is not one (`what` names the kind of checkpoint expected)."""
-    path = os.path.abspath(path)
-    meta_path = os.path.join(path, "meta.json")
-    if not os.path.isfile(meta_path):
-        raise DataError(f"{path}: not a {what} checkpoint (no meta.json); pass RUN_DIR/checkpoint")
-    with open(meta_path) as f:
-        return path, json.load(f)
+    """`(checkpoint directory, meta.json contents)` of the newest intact checkpoint in `path` (see `load`);
+    read its state with `read_tree(checkpoint directory)`."""
+    return load(path, lambda ckpt, meta: (ckpt, meta), what)
+
+
+def read_tree(ckpt: str):
+    """The `state/` tree of checkpoint directory `ckpt` (from `read_meta` / `load`) as numpy arrays, in
+    the nested dicts orbax stores; the caller rebuilds its own types. CheckpointError if orbax cannot."""
+    state = os.path.join(os.path.abspath(ckpt), "state")
+    if not os.path.isdir(state):
+        raise CheckpointError(f"{state}: missing")
+    try:
+        return _checkpointer().restore(state)
+    except Exception as e:  # orbax/tensorstore raise many types for damaged files
+        first = str(e).strip().splitlines()[0][:200] if str(e).strip() else ""
+        raise CheckpointError(f"{state}: unreadable ({type(e).__name__}: {first})") from None

@@ -9,13 +9,19 @@ import os
 import sys
 
 
-def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = None) -> None:
+def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = None,
+                     example: str = "train.iters=20") -> None:
     p.add_argument("config", nargs="?" if default_config is not None else None, default=default_config or None,
                    help="YAML config (see configs/)")
     p.add_argument("--data", help="sequence directory; overrides data.path")
     p.add_argument("--out", help="run directory; overrides output")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="override a config key, e.g. --set train.iters=20 (repeatable)")
+                   help=f"override a config key, e.g. --set {example} (repeatable)")
+
+
+def _add_overwrite_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--overwrite", action="store_true",
+                   help="the run directory holds a run already: delete everything in it first")
 
 
 def _add_view_args(p: argparse.ArgumentParser) -> None:
@@ -29,6 +35,8 @@ def _add_view_args(p: argparse.ArgumentParser) -> None:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jaxmap", description="Neural implicit 3D mapping in JAX.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an error (by default: one line saying what to fix)")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("synth", help="write a synthetic sequence with exact ground truth")
@@ -40,7 +48,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=0.0, help="range noise std in metres")
     p.add_argument("--pedestrians", action="store_true", help="city: add moving pedestrians (not in the GT)")
     p.add_argument("--long", action="store_true",
-                   help="city: a 1.1 km serpentine drive through a 256 m x 200 m city, 1025 frames (~35 s, 1.4 GB)")
+                   help="city: a 1.1 km serpentine drive through a 256 m x 200 m city, 1025 frames")
+    p.add_argument("--layout", choices=["grid", "suburb"], default="grid",
+                   help="city: the street grid (default) or a curved ring boulevard with detached houses")
+    p.add_argument("--beams", type=int, default=None, help="city: LiDAR beams (default per preset: 64, small 32)")
 
     p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
     p.add_argument("mesh")
@@ -50,6 +61,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--radius", type=float, default=-1.0, help="keep GT within this range of a sensor position (m)")
     p.add_argument("--max-range", type=float, default=-1.0,
                    help="count as observed only scan points within this range of their sensor (the mapper's crop)")
+    p.add_argument("--json-out", default=None, metavar="PATH",
+                   help="also write the metrics to this JSON file (they are always printed as one JSON line)")
+    p.add_argument("--protocol", choices=["shine", "surface"], default="shine",
+                   help="shine: N3/SHINE eval_mesh (default); surface: also completion_surface_cm (GT -> mesh, exact)")
+    p.add_argument("--samples", type=int, default=10_000_000, help="points sampled on the cropped mesh (SHINE: 10M)")
+    p.add_argument("--no-floor", action="store_true",
+                   help="skip the protocol floor (the GT mesh evaluated as the prediction, under 'floor')")
 
     p = sub.add_parser("baseline", help="classical baselines on the same data")
     p.add_argument("method", choices=["tsdf"])
@@ -61,7 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("map", help="N3 neural SDF mapping of a sequence")
     _add_config_args(p, default_config="")
-    p.add_argument("--resume", metavar="RUN_DIR", help="continue an interrupted run")
+    p.add_argument("--resume", metavar="RUN_DIR",
+                   help="continue an interrupted run from its newest intact checkpoint")
+    _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--no-mesh", action="store_true", help="map and checkpoint only: no mesh, no metrics")
     _add_view_args(p)
@@ -77,15 +97,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("prior", help="train or evaluate the equivariant encoder/decoder prior")
     p.add_argument("action", choices=["train", "eval"])
-    _add_config_args(p, default_config="configs/prior.yaml")
+    _add_config_args(p, default_config="configs/prior.yaml", example="train.steps=2000")
 
     p = sub.add_parser("imt", help="transformable latent map of a sequence: encode, fuse, mesh, metrics")
-    _add_config_args(p, default_config="configs/room_imt.yaml")
+    _add_config_args(p, default_config="configs/room_imt.yaml", example="map.voxel_size_m=0.05")
+    _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
 
     p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
-    _add_config_args(p, default_config="configs/room_slam.yaml")
+    _add_config_args(p, default_config="configs/room_slam.yaml", example="frontend.odometry.method=kiss_icp")
+    _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
 
@@ -109,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
     p.add_argument("--long", action="store_true",
                    help="n3: the 1.1 km drive of `jaxmap synth city --long` (per-frame cost and memory over time)")
+    p.add_argument("--suite", dest="validation_suite", action="store_true",
+                   help="n3: the validation suite (4 cities: seeds, layouts, noise, beams) on which defaults are "
+                        "chosen; rows, mean and worst; --only picks variants (default jaxmap)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     return parser
 
@@ -136,12 +161,31 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING, format="[%(name)s] %(message)s", stream=sys.stderr)
     ours = logging.getLogger("jaxmap")
     ours.setLevel(logging.DEBUG if args.verbose else logging.INFO)
+    from tqdm.contrib.logging import logging_redirect_tqdm
+
     from jaxmap.errors import JaxmapError
+    from jaxmap.rundir import exit_code
 
     try:
-        return _dispatch(args)
+        with logging_redirect_tqdm():  # log lines above the progress bars, not through them
+            return _dispatch(args)
     except JaxmapError as e:
+        if args.debug:
+            raise
         print(f"jaxmap {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        if args.debug:
+            raise
+        print(f"jaxmap {args.command}: interrupted ({e or 'SIGINT'})", file=sys.stderr)
+        return exit_code(e)
+    except OSError as e:
+        # A path the user gave that cannot be read or written (permissions, a full or read-only disk):
+        # one line naming it. Errors without a file name are not about a path: a traceback.
+        if args.debug or not e.filename:
+            raise
+        print(f"jaxmap {args.command}: error: {e.filename}: {e.strerror}; check the path and its permissions "
+              "(--debug shows the traceback)", file=sys.stderr)
         return 2
 
 
@@ -151,6 +195,8 @@ def _dispatch(args) -> int:
             from jaxmap.synth.city import generate_city as gen
         else:
             from jaxmap.synth.room import generate_room as gen
+        from jaxmap.rundir import output_dir
+
         kw = {"pedestrians": True} if args.pedestrians else {}
         if args.pedestrians and args.scene != "city":
             raise SystemExit("jaxmap synth: --pedestrians is for the city scene")
@@ -160,22 +206,36 @@ def _dispatch(args) -> int:
             if args.small:
                 raise SystemExit("jaxmap synth: --long and --small are different presets; pick one")
             kw["long"] = True
+        if args.scene == "city":
+            kw["layout"] = args.layout
+            if args.beams is not None:
+                kw["beams"] = args.beams
+        elif args.layout != "grid" or args.beams is not None:
+            raise SystemExit("jaxmap synth: --layout and --beams are for the city scene")
+        output_dir(args.out)
         stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
         print(json.dumps(stats))
         return 0
     if args.command == "eval":
-        from jaxmap.metrics import evaluate_mesh_file
+        from jaxmap.metrics import evaluate_mesh_file, format_metrics
+        from jaxmap.rundir import output_file
 
+        if args.json_out:
+            output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
         m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
-                               cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range)
-        out = os.path.splitext(args.mesh)[0] + ".metrics.json"
-        with open(out, "w") as f:
-            json.dump(m, f)
+                               cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
+                               n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor)
+        print(format_metrics(m, "mesh"))
+        if args.json_out:
+            with open(args.json_out, "w") as f:
+                json.dump(m, f)
         print(json.dumps(m))
         return 0
     if args.command == "baseline":
         from jaxmap.baselines.tsdf import tsdf_from_sequence
+        from jaxmap.rundir import output_file
 
+        output_file(args.out)
         info = tsdf_from_sequence(args.data, voxel_m=args.voxel, out_mesh=args.out,
                                   max_range_m=args.max_range, mesh_res_m=args.res)
         print(json.dumps(info))

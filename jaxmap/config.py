@@ -14,7 +14,7 @@ import difflib
 import os
 import typing
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import yaml
 
@@ -61,6 +61,8 @@ class SamplingConfig:
     free_sample_n: int = 3           # free-space samples per scan point, on the ray before the band
     free_band_m: float = 1.0         # free samples lie in the last free_band_m before the band
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
+    free_label_mode: str = "projected"  # "projected": that label capped by the distance to the hit's
+                                        # tangent plane; "truncation": the label as is (paper; ablation)
 
 
 @dataclass(frozen=True)
@@ -96,9 +98,13 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class WindowConfig:
-    mode: str = "voxel"              # "voxel" (N3), "replay" (all past), "keyframe" (last N frames)
+    mode: str = "voxel"              # "voxel" (N3), "replay" (all past pairs, drawn uniformly),
+                                     # "keyframe" (the pairs of the last N frames, drawn uniformly)
     keyframes: int = 5               # window length for mode "keyframe"
-    pairs_per_voxel: int = 64        # block capacity; oldest pairs overwritten
+    pairs_per_voxel: int = 64        # block capacity (pairs kept per leaf voxel)
+    block_policy: str = "reservoir"  # "reservoir": a uniform sample of the pairs the voxel received in the
+                                     # window; "ring": the newest pairs (ablation)
+    pairs_per_frame: int = 8         # at most this many of a frame's pairs offered to a voxel (0 = all)
     initial_blocks: int = 1 << 14    # blocks in the store at start (grown outside jit when full)
 
 
@@ -115,7 +121,7 @@ class EvalConfig:
     threshold_m: float = 0.1         # F-score threshold
     cull_distance_m: float = 0.3     # GT points farther than this from every scan point are culled
     eval_radius_m: float = -1.0      # >0: keep GT within this radius of some sensor position
-    n_samples: int = 2_000_000       # points sampled on the predicted mesh
+    n_samples: int = 10_000_000      # points sampled on the cropped predicted mesh (SHINE: 10M)
 
 
 @dataclass(frozen=True)
@@ -159,6 +165,8 @@ class LatentMapConfig:
     splat_power: float = 2.0          # trilinear only: splat weights^power, renormalised (1 = plain trilinear)
     remap_min_rotation_deg: float = 0.05  # remap a keyframe whose pose moved more than this ...
     remap_min_translation_m: float = 0.002  # ... or this
+    remap_rebuild_fraction: float = 0.5  # rebuild the map from every keyframe when more than this share moved
+    cells_per_voxel: int = 1          # points are pooled into cells of voxel / this before encoding (0 = none)
     initial_capacity: int = 16384     # hash-table slots of the global map at start (grows, logged)
     prior: str = ""                   # prior weights (.npz); "" = the weights shipped in the package
 
@@ -186,13 +194,176 @@ class ImtConfig:
 
 
 # ---------------------------------------------------------------------------------------------
+# Value rules, checked when a config is loaded (file, --set, a checkpoint's meta.json). One table:
+# RULES[dataclass][field] for single values, CHECKS[dataclass] for rules across fields. A key
+# without a rule loads as its type allows; add its rule here (or `register_rules` from the module
+# that defines a config dataclass elsewhere).
+# ---------------------------------------------------------------------------------------------
+
+DATA_KINDS = ("auto", "kitti", "depth", "rosbag", "tum", "replica", "las")
+
+
+@dataclass(frozen=True)
+class Rule:
+    """What a valid value of one key is: `ok(value)`, and `expect` words it for the error message."""
+
+    ok: Callable[[Any], bool]
+    expect: str
+    choices: tuple = ()
+
+    def problem(self, value: Any) -> str | None:
+        """None when `value` is valid, else "must be ..." (with the closest choice for a mistyped name)."""
+        try:
+            if self.ok(value):
+                return None
+        except TypeError:
+            pass
+        msg = f"must be {self.expect}"
+        if self.choices and isinstance(value, str):
+            close = difflib.get_close_matches(value, [str(c) for c in self.choices], n=1, cutoff=0.5)
+            if close:
+                msg += f" (did you mean {close[0]!r}?)"
+        return msg
+
+
+def one_of(*choices) -> Rule:
+    return Rule(lambda v: v in choices, "one of " + ", ".join(repr(c) for c in choices), tuple(choices))
+
+
+def at_least(lo) -> Rule:
+    return Rule(lambda v: v >= lo, f">= {lo}")
+
+
+def above(lo) -> Rule:
+    return Rule(lambda v: v > lo, f"> {lo}")
+
+
+def within(lo, hi) -> Rule:
+    return Rule(lambda v: lo <= v <= hi, f"between {lo} and {hi}")
+
+
+def strictly_within(lo, hi) -> Rule:
+    return Rule(lambda v: lo < v < hi, f"strictly between {lo} and {hi}")
+
+
+NONEMPTY = Rule(lambda v: bool(str(v).strip()), "a non-empty path")
+EVEN_AT_LEAST_2 = Rule(lambda v: v >= 2 and v % 2 == 0, "an even number >= 2")
+
+
+def lattice_problem(res: float, leaf: float, leaf_name: str = "grid.leaf_vox_size") -> str | None:
+    """None when a marching-cubes spacing `res` divides the leaf voxel size `leaf`, else why not."""
+    k = leaf / res if res > 0 else 0.0
+    if res > 0 and round(k) >= 1 and abs(k - round(k)) <= 1e-6 * max(1.0, k):
+        return None
+    return f"must be > 0 and divide {leaf_name}={leaf:g} (e.g. {leaf:g}, {leaf / 2:g} or {leaf / 4:g})"
+
+
+# A check across fields takes (a config dataclass, the prefix of its keys) and yields, per problem,
+# (the full keys involved, the message naming them).
+def _map_checks(c: "MapConfig", x: str):
+    p = lattice_problem(c.mesh.resolution_m, c.grid.leaf_vox_size, f"{x}grid.leaf_vox_size")
+    if p:
+        yield (f"{x}mesh.resolution_m", f"{x}grid.leaf_vox_size"), f"{x}mesh.resolution_m={c.mesh.resolution_m!r} {p}"
+
+
+def _data_checks(d: DataConfig, x: str):
+    if not (d.end_frame == -1 or d.end_frame > d.begin_frame):
+        yield (f"{x}end_frame", f"{x}begin_frame"), (
+            f"{x}end_frame={d.end_frame} must be -1 (to the end) or greater than {x}begin_frame={d.begin_frame} "
+            "(it is exclusive)")
+
+
+def _preprocess_checks(p: PreprocessConfig, x: str):
+    if not p.max_range_m > p.min_range_m:
+        yield (f"{x}max_range_m", f"{x}min_range_m"), (
+            f"{x}max_range_m={p.max_range_m!r} must be greater than {x}min_range_m={p.min_range_m!r}")
+    if not p.max_z_m > p.min_z_m:
+        yield (f"{x}max_z_m", f"{x}min_z_m"), f"{x}max_z_m={p.max_z_m!r} must be greater than {x}min_z_m={p.min_z_m!r}"
+
+
+RULES: dict[type, dict[str, Rule]] = {
+    DataConfig: {"kind": one_of(*DATA_KINDS), "begin_frame": at_least(0), "every_frame": at_least(1),
+                 "path": NONEMPTY},
+    PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3)},
+    SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
+                     "free_label_mode": one_of("projected", "truncation"),
+                     "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),
+                     "free_sample_n": at_least(0), "free_band_m": at_least(0.0)},
+    GridConfig: {"leaf_vox_size": above(0.0), "feature_levels": at_least(1), "feature_dim": at_least(1),
+                 "feature_std": at_least(0.0), "max_load": strictly_within(0.0, 1.0)},
+    DecoderConfig: {"hidden_dim": at_least(1), "hidden_layers": at_least(0)},
+    TrainConfig: {"iters": at_least(1), "nv": at_least(1), "np_per_voxel": at_least(1), "nt": at_least(0),
+                  "batch_size": at_least(1), "lr": above(0.0), "sigma_sigmoid_m": above(0.0),
+                  "weight_e": at_least(0.0), "freeze_after_frame": at_least(0)},
+    WindowConfig: {"mode": one_of("voxel", "replay", "keyframe"), "keyframes": at_least(1),
+                   "pairs_per_voxel": at_least(1), "initial_blocks": at_least(1),
+                   "block_policy": one_of("reservoir", "ring"), "pairs_per_frame": at_least(0)},
+    MeshConfig: {"resolution_m": above(0.0), "min_component_faces": at_least(0), "mask_level": at_least(0),
+                 "min_leaf_corners": within(0, 8)},
+    EvalConfig: {"threshold_m": above(0.0), "cull_distance_m": above(0.0), "n_samples": at_least(1)},
+    MapConfig: {"output": NONEMPTY, "checkpoint_every": at_least(1)},
+    LatentMapConfig: {"voxel_size_m": above(0.0), "min_points": at_least(1),
+                      "interpolation": one_of("trilinear", "softmax"), "softmax_temperature": above(0.0),
+                      "k_neighbours": at_least(1), "splat_power": above(0.0), "remap_min_rotation_deg": at_least(0.0),
+                      "remap_min_translation_m": at_least(0.0), "initial_capacity": at_least(1)},
+    LatentMeshConfig: {"resolution": EVEN_AT_LEAST_2, "min_weight": at_least(0.0), "min_component_faces": at_least(0)},
+    ImtConfig: {"output": NONEMPTY},
+}
+
+CHECKS: dict[type, list[Callable[[Any, str], Any]]] = {
+    MapConfig: [_map_checks],
+    DataConfig: [_data_checks],
+    PreprocessConfig: [_preprocess_checks],
+}
+
+
+def register_rules(schema: type, checks: Sequence[Callable[[Any, str], Any]] = (), **rules: Rule) -> None:
+    """Add rules for the fields of config dataclass `schema` (defined outside this module), and checks
+    across its fields (see `_map_checks`)."""
+    RULES.setdefault(schema, {}).update(rules)
+    CHECKS.setdefault(schema, []).extend(c for c in checks if c not in CHECKS.get(schema, []))
+
+
+def validate(cfg: Any, source: str = "<config>", origins: dict[str, str] | None = None) -> None:
+    """ConfigError for the first value of dataclass tree `cfg` that breaks a rule of `RULES` / `CHECKS`,
+    naming where it came from: `origins[key]` (e.g. "--set 'train.iters=-5'") or else `source` (the file)."""
+    origins = origins or {}
+
+    def walk(node: Any, prefix: str) -> None:
+        rules = RULES.get(type(node), {})
+        for f in dataclasses.fields(node):
+            value, key = getattr(node, f.name), prefix + f.name
+            if dataclasses.is_dataclass(value):
+                walk(value, key + ".")
+            elif f.name in rules:
+                problem = rules[f.name].problem(value)
+                if problem:
+                    raise ConfigError(f"{origins.get(key, source)}: {key}={value!r} {problem}")
+        for check in CHECKS.get(type(node), ()):
+            for keys, message in check(node, prefix):
+                raise ConfigError(f"{next((origins[k] for k in keys if k in origins), source)}: {message}")
+
+    walk(cfg, "")
+
+
+# ---------------------------------------------------------------------------------------------
 # Generic loading, validation and overrides.
 # ---------------------------------------------------------------------------------------------
 
 
-def _closest(name: str, valid: Sequence[str]) -> str:
-    match = difflib.get_close_matches(name, list(valid), n=1, cutoff=0.0)
-    return match[0] if match else ""
+def unknown_key_message(source: str, keys: Sequence[str], depth: int, here: dict[str, bool]) -> str:
+    """The error for `keys[depth]`, unknown among `here` ({name: is a section} at that depth): an unknown
+    section (the key goes on, or names a mapping) is matched against section names, a key against keys."""
+    prefix = ".".join(keys[:depth]) + "." if depth else ""
+    name, section = keys[depth], depth < len(keys) - 1
+    kind = "section" if section else "key"
+    pool = [n for n, is_sec in here.items() if is_sec == section] or list(here)
+    close = difflib.get_close_matches(name, pool, n=1, cutoff=0.6)
+    if close:
+        hint = f"did you mean '{prefix}{close[0]}'?"
+    else:
+        hint = f"valid {kind}s here: {', '.join(prefix + n for n in pool)}"
+    return f"{source}: unknown config {kind} '{prefix}{name}'; {hint}"
 
 
 def _coerce(value: Any, typ: Any, where: str) -> Any:
@@ -230,8 +401,10 @@ def _coerce(value: Any, typ: Any, where: str) -> Any:
     return value
 
 
-def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix: str = "", base: Any = None) -> Any:
-    """Build dataclass `schema` from a nested dict, rejecting unknown keys with a suggestion.
+def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix: str = "", base: Any = None,
+              check: bool = True) -> Any:
+    """Build dataclass `schema` from a nested dict, rejecting unknown keys with a suggestion and (the
+    root call, unless `check=False`) values that break a rule of `RULES` / `CHECKS` (see `validate`).
 
     Missing keys keep the defaults of `base` (an instance of `schema`; default: `schema()`), so a
     section whose default differs from its class defaults (e.g. `ImtConfig.data`) keeps them.
@@ -245,20 +418,19 @@ def from_dict(schema: type, data: dict | None, source: str = "<config>", prefix:
     for key, value in data.items():
         full = f"{prefix}{key}"
         if key not in fields:
-            valid = [f"{prefix}{k}" for k in fields]
-            raise ConfigError(
-                f"{source}: unknown config key '{full}'; did you mean '{_closest(full, valid)}'? "
-                f"Valid keys here: {', '.join(valid)}"
-            )
+            here = {k: dataclasses.is_dataclass(hints[k]) for k in fields}
+            keys = full.split(".") + ([""] if isinstance(value, dict) else [])  # a mapping: an unknown section
+            raise ConfigError(unknown_key_message(source, keys, len(keys) - 1 - isinstance(value, dict), here))
         typ = hints[key]
         if dataclasses.is_dataclass(typ):
             sub = getattr(base, key) if base is not None else _field_default(fields[key])
             kwargs[key] = from_dict(typ, value, source, prefix=f"{full}.", base=sub)
         else:
             kwargs[key] = _coerce(value, typ, f"{source}: {full}")
-    if base is not None:
-        return dataclasses.replace(base, **kwargs)
-    return schema(**kwargs)
+    cfg = dataclasses.replace(base, **kwargs) if base is not None else schema(**kwargs)
+    if check and not prefix:
+        validate(cfg, source)
+    return cfg
 
 
 def _field_default(f: dataclasses.Field) -> Any:
@@ -282,10 +454,17 @@ def to_dict(cfg: Any) -> dict:
 
 
 def apply_overrides(cfg: Any, overrides: Sequence[str], source: str = "--set") -> Any:
-    """Apply `section.key=value` strings (value parsed as YAML) to a dataclass tree."""
+    """Apply `section.key=value` strings (value parsed as YAML) to a dataclass tree, then `validate` it."""
+    cfg, origins = _override(cfg, overrides, source)
+    validate(cfg, source, origins)
+    return cfg
+
+
+def _override(cfg: Any, overrides: Sequence[str], source: str) -> tuple[Any, dict[str, str]]:
+    """(`cfg` with the overrides applied, not yet validated; {key: the override that set it})."""
     if not overrides:
-        return cfg
-    tree = to_dict(cfg)
+        return cfg, {}
+    tree, origins = to_dict(cfg), {}
     for item in overrides:
         if "=" not in item:
             raise ConfigError(f"{source} '{item}': expected section.key=value, e.g. train.iters=20")
@@ -293,27 +472,25 @@ def apply_overrides(cfg: Any, overrides: Sequence[str], source: str = "--set") -
         keys = path.strip().split(".")
         node = tree
         for depth, k in enumerate(keys):
-            valid = list(node.keys()) if isinstance(node, dict) else []
-            if k not in valid:
-                here = ".".join(keys[:depth])
-                full_valid = [f"{here}.{v}" if here else v for v in valid]
-                raise ConfigError(
-                    f"{source} '{item}': unknown config key '{path}'; did you mean "
-                    f"'{_closest(path, full_valid)}'?"
-                )
+            if not isinstance(node, dict) or k not in node:
+                here = {n: isinstance(v, dict) for n, v in node.items()} if isinstance(node, dict) else {}
+                raise ConfigError(unknown_key_message(f"{source} '{item}'", keys, depth, here))
             if depth == len(keys) - 1:
                 if isinstance(node[k], dict):
                     raise ConfigError(f"{source} '{item}': '{path}' is a section, name one of its keys")
                 node[k] = yaml.safe_load(raw)
+                origins[path.strip()] = f"{source} '{item}'"
             else:
                 node = node[k]
-    return from_dict(type(cfg), tree, source)
+    return from_dict(type(cfg), tree, source, check=False), origins
 
 
 def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = (), schema: type = MapConfig) -> Any:
     """Load a YAML config file into `schema`, then apply overrides. `path=None` gives defaults."""
     if path is None:
-        return apply_overrides(schema(), overrides)
+        cfg, origins = _override(schema(), overrides, "--set")
+        validate(cfg, "<defaults>", origins)
+        return cfg
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise ConfigError(f"config file not found: {path} (the shipped ones are in configs/)")
@@ -322,8 +499,9 @@ def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = (), s
             data = yaml.safe_load(f)
         except yaml.YAMLError as e:
             raise ConfigError(f"{path}: not valid YAML: {e}") from None
-    cfg = from_dict(schema, data, source=path)
-    return apply_overrides(cfg, overrides)
+    cfg, origins = _override(from_dict(schema, data, source=path, check=False), overrides, "--set")
+    validate(cfg, path, origins)
+    return cfg
 
 
 def shipped_config_path(name: str) -> str | None:

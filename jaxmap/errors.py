@@ -11,3 +11,16 @@ class DataError(JaxmapError, ValueError):
 
 class CapacityError(JaxmapError, RuntimeError):
     """A fixed-capacity structure is full and could not be grown."""
+
+
+class RunDirError(JaxmapError):
+    """A run or output directory cannot be used as asked: taken by another process, holding another
+    run, not writable, or a file where a directory is needed."""
+
+
+class CheckpointError(DataError):
+    """A checkpoint is damaged (missing, truncated or altered files) or none is usable."""
+
+
+class NoCheckpointError(CheckpointError):
+    """A checkpoint directory holds no checkpoint at all (the run never saved one)."""

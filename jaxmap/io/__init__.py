@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import os
 
+from jaxmap.config import DATA_KINDS
 from jaxmap.errors import DataError
 from jaxmap.io.depth import (DepthSequence, backproject_depth, pixel_rays, read_depth_png, read_intrinsics,
                              write_depth_png, write_intrinsics)
@@ -38,7 +39,7 @@ from jaxmap.io.tum import TumSequence, is_tum
 
 log = logging.getLogger("jaxmap")
 
-KINDS = ("auto", "kitti", "depth", "rosbag", "tum", "replica", "las")
+KINDS = DATA_KINDS  # data.kind; the config validates it at load
 
 _LAYOUTS = ("the KITTI layout (velodyne/*.bin|*.ply|*.pcd + poses.txt [+ calib.txt]), the depth layout "
             "(depth/*.png + intrinsics.txt + poses.txt), a ROS bag (.bag, .mcap, .db3, or a ROS 2 bag directory "

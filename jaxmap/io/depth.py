@@ -91,6 +91,22 @@ def write_depth_png(path, depth_u16) -> None:
     Image.fromarray(np.ascontiguousarray(depth_u16)).save(os.fspath(path), format="PNG")
 
 
+def check_depth_size(path: str, shape: tuple, intrinsics: tuple, source: str, first: tuple | None = None) -> None:
+    """DataError when a depth image of `shape` [H, W] does not fit the intrinsics (fx, fy, cx, cy) read
+    from `source`: their principal point must lie in the central half of the image (intrinsics made for
+    another resolution put it near an edge or outside), and every image must have the size `first`
+    ([H, W] of the sequence's first image read, if given)."""
+    h, w = int(shape[0]), int(shape[1])
+    if first is not None and (h, w) != tuple(first):
+        raise DataError(f"{path}: {w} x {h} pixels, but the sequence's other depth images are {first[1]} x "
+                        f"{first[0]}; all depth images of a sequence must have one size (and its intrinsics)")
+    cx, cy = float(intrinsics[2]), float(intrinsics[3])
+    if not (0.25 * w <= cx <= 0.75 * w and 0.25 * h <= cy <= 0.75 * h):
+        raise DataError(f"{path}: {w} x {h} pixels, but {source} puts the principal point at (cx, cy) = "
+                        f"({cx:g}, {cy:g}), which fits an image of about {2 * cx:.0f} x {2 * cy:.0f}: the intrinsics "
+                        f"are for another image size; scale fx fy cx cy to {w} x {h} or use the images they belong to")
+
+
 def pixel_rays(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     """Camera-frame ray directions with z = 1 for every pixel, row-major: [H*W,3] float64."""
     v, u = np.meshgrid(np.arange(height, dtype=np.float64), np.arange(width, dtype=np.float64), indexing="ij")
@@ -139,12 +155,21 @@ class DepthSequence(Sequence):
                                "(row-major 3x4 T_world_camera) per image")
         super().__init__(data_dir, len(names), poses, begin_frame, end_frame, every_frame)
 
+    def _read_raw(self, index: int) -> np.ndarray:
+        """The uint16 image of frame number `index`, checked against the intrinsics and the first image."""
+        path = self.depth_paths[index]
+        raw = read_depth_png(path)
+        check_depth_size(path, raw.shape, self.intrinsics, os.path.join(self.data_dir, "intrinsics.txt"),
+                         getattr(self, "_image_shape", None))
+        self._image_shape = raw.shape
+        return raw
+
     def read_depth(self, index: int) -> np.ndarray:
         """Metric depth [H,W] float32 (0 = no return) of frame number `index` (not the selection index)."""
-        raw = read_depth_png(self.depth_paths[index])
+        raw = self._read_raw(index)
         return (raw.astype(np.float64) / self.depth_scale).astype(np.float32)
 
     def _read_points(self, index: int) -> np.ndarray:
-        raw = read_depth_png(self.depth_paths[index])
+        raw = self._read_raw(index)
         fx, fy, cx, cy = self.intrinsics
         return backproject_depth(raw.astype(np.float64) / self.depth_scale, fx, fy, cx, cy)

@@ -55,7 +55,9 @@ class Sequence:
       poses:     [M,4,4] float64 world <- sensor poses of the selected frames (read-only array)
       timestamps: [M] float64 sensor times (s) of the selected frames, or None if the format has none
       gt_points_path, gt_mesh_path: data_dir/gt_points.ply and gt_mesh.ply, or None if absent
-    `len(seq)` is M; iterating reads one frame at a time (lazy); `seq.frame(i)` is the i-th selected frame.
+    `len(seq)` is M; iterating reads one frame at a time (lazy); `seq.frame(i)` (or `seq[i]`) is the i-th
+    selected frame. A frame with no points, or only points at the sensor origin (an all-zero scan), is
+    returned as read, with a warning naming its file.
     """
 
     kind = "base"
@@ -94,7 +96,25 @@ class Sequence:
         i = i % n
         idx = int(self.indices[i])
         stamp = None if self.timestamps is None else float(self.timestamps[i])
-        return Frame(index=idx, points=self._read_points(idx), pose=np.array(self.poses[i]), timestamp=stamp)
+        points = self._read_points(idx)
+        if not points.any():  # no points, or all exactly at the origin: nothing to map
+            what = "no points" if len(points) == 0 else f"all {len(points)} points at the sensor origin (0, 0, 0)"
+            log.warning("%s: empty scan (%s): frame %d adds nothing to the map", self.source(idx), what, idx)
+        return Frame(index=idx, points=points, pose=np.array(self.poses[i]), timestamp=stamp)
+
+    def __getitem__(self, i: int) -> Frame:
+        """`seq[i]` = `seq.frame(i)`: the i-th selected frame (an int; negative counts from the end)."""
+        if not isinstance(i, (int, np.integer)) or isinstance(i, bool):
+            raise TypeError(f"sequence indices are ints (the i-th selected frame), not {type(i).__name__}")
+        return self.frame(int(i))
+
+    def source(self, index: int) -> str:
+        """The file frame number `index` is read from (for messages): its scan or image, else the sequence."""
+        for attr in ("scan_paths", "depth_paths"):
+            paths = getattr(self, attr, None)
+            if paths is not None and 0 <= index < len(paths):
+                return paths[index]
+        return f"{self.data_dir} (frame {index})"
 
     def _read_points(self, index: int) -> np.ndarray:  # pragma: no cover - abstract
         raise NotImplementedError
