@@ -1,25 +1,40 @@
-"""Reconstruction metrics with the culling protocol of N3-Mapping, section IV-A (README: Evaluation protocol).
+"""Reconstruction metrics: the N3-Mapping / SHINE-Mapping evaluation protocol (README: Evaluation protocol).
 
-Protocol, all in the world frame, metres in and centimetres / percent out:
+The default protocol ("shine") is a literal implementation of SHINE-Mapping's ``eval_mesh``
+(``utils/eval_utils.py``) with its MaiCity settings, which N3-Mapping reports with; world frame, metres in,
+centimetres / percent out:
 
-1. The prediction is a set of points sampled uniformly (area-weighted) on the predicted mesh
-   (:func:`sample_mesh`, deterministic for a seed).
-2. GT is culled to the observed region: GT points farther than ``cull_distance_m`` from every observed
-   scan point are dropped (the map cannot know what no scan saw).
-3. If ``eval_radius_m > 0``, GT points farther than that from every sensor position are dropped too
-   ("evaluate within the 20 m the mapper sees" when scans are cropped to 20 m).
-4. The prediction is cropped to the axis-aligned bounding box of the culled GT, grown by the threshold.
-5. Accuracy = mean distance pred -> GT, Completion = mean distance GT -> pred, Chamfer-L1 = their mean
-   (all cm); Precision = % of pred within the threshold of GT, Completion ratio = % of GT within the
-   threshold of pred, F-score = 2 P R / (P + R) with R = completion ratio (all %).
+1. GT points are restricted to the observed region: points farther than ``cull_distance_m`` from every
+   observed scan point (of the mapped frames, inside the mapper's range crop) are dropped, and with
+   ``eval_radius_m > 0`` those farther than that from every sensor position (:func:`cull_gt`).
+2. The predicted mesh is cropped to the axis-aligned bounding box of the kept GT points with z grown by
+   the down-sampling voxel (2 cm), as open3d's ``mesh.crop(AxisAlignedBoundingBox)``: a triangle is
+   kept when its three vertices are inside the box (:func:`crop_mesh`). (x and y are grown by 2 cm too,
+   where SHINE grows only z: see CROP_XY_GROW_M.)
+3. The cropped mesh is sampled as open3d's ``sample_points_uniformly`` (``n_samples`` points, 10 M in
+   SHINE; :func:`sample_points_uniformly`), and both point sets are voxel-down-sampled at 2 cm as open3d's
+   ``voxel_down_sample`` (the mean of the points in each voxel; :func:`voxel_down_sample`).
+4. Accuracy = mean distance from each predicted point to its nearest GT point over the predicted points
+   closer than ``acc_truncation_m`` = 0.2 m (the others are dropped); Precision = % of those kept closer
+   than the threshold. Completion = mean distance from each GT point to its nearest predicted point,
+   distances >= ``comp_truncation_m`` = 2.0 m counted as 2.0 m (SHINE's ``nn_correspondance`` with
+   ``ignore_outlier=False``); Completion ratio = % of GT points closer than the threshold.
+   Chamfer-L1 = (Accuracy + Completion) / 2; F-score = 2 P R / (P + R) with R = completion ratio.
+   The threshold is 10 cm outdoors (configs/city.yaml) and 5 cm indoors (the room configs).
 
-Distances are surface to surface where the meshes are known: Accuracy measures each predicted sample
-against the GT *mesh* and Completion each GT point against the predicted *mesh* (open3d's BVH
-distance query). Point-to-point nearest neighbours between two samplings would add a floor of about
-half the sample spacing (about 5 cm for GT points at 100 per m^2, above the 2 cm that N3 reports);
-they are the fallback when a mesh is not given or open3d is missing (scipy cKDTree, all cores).
+Every metrics dict carries ``"protocol": "shine"``. :func:`protocol_floor` is the same protocol with the
+GT mesh itself as the prediction: the best score the protocol can give on that data (the sampling
+floor), printed beside every table. With per-point GT classes (``gt_points.ply`` of ``jaxmap synth``),
+:func:`signed_error_by_class` gives the mean signed distance of the predicted surface to the GT surface
+per class (negative = the surface sinks below / into the true one).
+
+Nothing here measures accuracy against the GT *mesh*: its hidden and never-observed faces would absorb
+misplaced surface. ``protocol="surface"`` (``jaxmap eval --protocol surface``) adds one exact
+surface-to-surface figure as an extra field, ``completion_surface_cm``: each kept GT point's distance to
+the predicted *mesh* (open3d's BVH distance, clamped at 2 m), which has no sampling floor.
+
 This module imports numpy at import time only (scipy, trimesh and open3d lazily), so it runs on
-machines without open3d.
+machines without open3d; open3d is only used for ``completion_surface_cm``.
 """
 from __future__ import annotations
 
@@ -33,11 +48,25 @@ from jaxmap.errors import DataError
 
 log = logging.getLogger(__name__)
 
+PROTOCOL = "shine"
+PROTOCOLS = ("shine", "surface")  # "surface": shine + the extra field completion_surface_cm
 METRIC_KEYS = (
     "accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "precision", "f_score",
-    "threshold_m", "n_pred", "n_gt",
+    "threshold_m", "n_pred", "n_gt", "protocol",
 )
-OBSERVED_VOXEL_M = 0.05  # observed scan points are thinned to one per voxel of this size for culling
+DOWN_SAMPLE_M = 0.02       # SHINE's down_sample_res: voxel of both point sets, and the z growth of the crop box
+ACC_TRUNCATION_M = 0.2     # SHINE's truncation_acc (MaiCity): predicted points farther from GT are dropped
+COMP_TRUNCATION_M = 2.0    # SHINE's truncation_com (MaiCity): GT -> prediction distances are clamped here
+N_SAMPLES = 10_000_000     # SHINE's mesh_sample_point
+SIGNED_MAX_M = 0.2         # signed error: predicted points whose nearest GT point is closer than this
+# SHINE grows the crop box in z only. Outdoors the box's x/y sides are open ends of the GT and growing them
+# changes nothing measurable; indoors they are the room's walls, and an exact box cuts away every predicted
+# wall triangle a millimetre outside the GT wall (a good TSDF room mesh fell to 73 % completion ratio). So x and y
+# are grown by the same 2 cm as z: the one deviation from SHINE's eval_mesh.
+CROP_XY_GROW_M = 0.02
+FLOOR_MAX_EDGE_M = 0.5     # the GT mesh is subdivided to this edge length before it is cropped as a prediction
+OBSERVED_VOXEL_M = 0.05    # observed scan points are thinned to one per voxel of this size for culling
+_CHUNK = 2_000_000         # samples generated / down-sampled per piece (bounded memory)
 
 
 def _as_points(x, name: str) -> np.ndarray:
@@ -49,19 +78,26 @@ def _as_points(x, name: str) -> np.ndarray:
     return a
 
 
-def _nn_dist(tree_points: np.ndarray, query: np.ndarray, upper: float = np.inf) -> np.ndarray:
-    """Distance from each query point to its nearest tree point (inf beyond `upper`)."""
+def _nn(tree_points: np.ndarray, query: np.ndarray, upper: float = np.inf):
+    """(distance [N], index [N]) from each query point to its nearest tree point (inf / len(tree) beyond
+    `upper` or when the tree is empty)."""
     from scipy.spatial import cKDTree
 
     if len(tree_points) == 0:
-        return np.full(len(query), np.inf)
-    d, _ = cKDTree(tree_points).query(query, k=1, distance_upper_bound=upper, workers=-1)
-    return d
+        return np.full(len(query), np.inf), np.zeros(len(query), np.int64)
+    if len(query) == 0:
+        return np.zeros(0), np.zeros(0, np.int64)
+    return cKDTree(tree_points).query(query, k=1, distance_upper_bound=upper, workers=-1)
+
+
+def _nn_dist(tree_points: np.ndarray, query: np.ndarray, upper: float = np.inf) -> np.ndarray:
+    """Distance from each query point to its nearest tree point (inf beyond `upper`)."""
+    return _nn(tree_points, query, upper)[0]
 
 
 def mesh_distance(mesh, query: np.ndarray) -> np.ndarray | None:
     """Unsigned distance [N] from points [N,3] to a triangle mesh (trimesh.Trimesh), or None when
-    open3d is not installed (the caller then falls back to point sets)."""
+    open3d is not installed."""
     try:
         import open3d as o3d
     except ImportError:
@@ -74,78 +110,153 @@ def mesh_distance(mesh, query: np.ndarray) -> np.ndarray | None:
 
 
 def cull_gt(gt_points, *, observed_points=None, cull_distance_m: float = 0.3, sensor_positions=None,
-            eval_radius_m: float = -1.0) -> np.ndarray:
-    """Steps 2-3 of the protocol. gt_points [G,3] -> the kept GT points [G',3] (float64, world frame)."""
+            eval_radius_m: float = -1.0, return_index: bool = False):
+    """Step 1 of the protocol. gt_points [G,3] -> the kept GT points [G',3] (float64, world frame), and
+    with return_index=True also their indices into gt_points [G'] (to carry normals and classes along).
+
+    Kept: within eval_radius_m of some sensor position (when eval_radius_m > 0) and within
+    cull_distance_m of some observed point (when observed_points is given)."""
     gt = _as_points(gt_points, "gt_points")
-    if observed_points is not None:
-        obs = _as_points(observed_points, "observed_points")
-        if len(obs) == 0:
-            raise DataError("observed_points is empty: nothing was observed, so all GT would be culled")
-        d = _nn_dist(obs, gt, upper=cull_distance_m * (1 + 1e-9) + 1e-12)
-        gt = gt[d <= cull_distance_m]
+    idx = np.arange(len(gt))
     if eval_radius_m is not None and eval_radius_m > 0:
         if sensor_positions is None:
             raise DataError("eval_radius_m > 0 needs sensor_positions (the pose translations)")
         sp = _as_points(sensor_positions, "sensor_positions")
         d = _nn_dist(sp, gt, upper=eval_radius_m * (1 + 1e-9) + 1e-12)
-        gt = gt[d <= eval_radius_m]
-    return gt
+        idx = idx[d <= eval_radius_m]
+    if observed_points is not None:
+        obs = _as_points(observed_points, "observed_points")
+        if len(obs) == 0:
+            raise DataError("observed_points is empty: nothing was observed, so all GT would be culled")
+        d = _nn_dist(obs, gt[idx], upper=cull_distance_m * (1 + 1e-9) + 1e-12)
+        idx = idx[d <= cull_distance_m]
+    return (gt[idx], idx) if return_index else gt[idx]
 
 
-def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_points=None,
-             cull_distance_m: float = 0.3, sensor_positions=None, eval_radius_m: float = -1.0,
-             pred_mesh=None, gt_mesh=None) -> dict:
-    """Reconstruction metrics of predicted surface points against GT surface points.
+def crop_box(gt: np.ndarray, z_grow_m: float = DOWN_SAMPLE_M,
+             xy_grow_m: float = CROP_XY_GROW_M) -> tuple[np.ndarray, np.ndarray]:
+    """The crop box: the axis-aligned bounding box of the GT points with z grown by z_grow_m (SHINE) and
+    x, y by xy_grow_m (SHINE: 0; see CROP_XY_GROW_M) on both sides. Returns (lo [3], hi [3])."""
+    grow = np.array([xy_grow_m, xy_grow_m, z_grow_m])
+    return gt.min(axis=0) - grow, gt.max(axis=0) + grow
 
-    Args:
-      pred_points: [P,3] points sampled on the predicted surface (world frame, metres).
-      gt_points: [G,3] GT surface points (world frame).
-      threshold_m: distance threshold of precision / completion ratio / F-score.
-      observed_points: [O,3] scan points in the world frame, or None for no culling.
-      cull_distance_m: GT points farther than this from every observed point are dropped.
-      sensor_positions: [S,3] sensor positions in the world frame (needed when eval_radius_m > 0).
-      eval_radius_m: > 0 keeps only GT within this distance of some sensor position.
-      pred_mesh: the predicted trimesh, when known: Completion is then GT point -> predicted surface.
-      gt_mesh: the GT trimesh, when known: Accuracy is then predicted sample -> GT surface.
 
-    Returns:
-      dict with exactly the keys of METRIC_KEYS: accuracy_cm, completion_cm, chamfer_l1_cm (cm, 4
-      decimals), completion_ratio, precision, f_score (%, 3 decimals), threshold_m, n_pred and n_gt
-      (points that entered the metrics, after culling and cropping). A prediction with no point inside
-      the GT box gives infinite distances and zero ratios rather than an error, so a failed method still
-      gets a row in a benchmark table.
-    """
+def crop_mesh(vertices, faces, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """open3d's ``TriangleMesh.crop(AxisAlignedBoundingBox(lo, hi))``: keep the vertices inside the box
+    (bounds inclusive) and the triangles whose three vertices are all kept; unreferenced vertices are
+    dropped. Returns (vertices [V',3] float64, faces [F',3] int64)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    inside = np.all((v >= np.asarray(lo)) & (v <= np.asarray(hi)), axis=1)
+    f = f[inside[f].all(axis=1)]
+    used = np.unique(f)
+    remap = np.full(len(v), -1, np.int64)
+    remap[used] = np.arange(len(used))
+    return v[used], remap[f]
+
+
+def _uniform_sample_chunks(vertices, faces, n: int, seed: int = 0, chunk: int = _CHUNK):
+    """Yields the samples of :func:`sample_points_uniformly` in pieces of about `chunk` points."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0:
+        raise DataError("the mesh has zero faces: nothing to sample (did the method produce a surface?)")
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    del tri
+    total = float(area.sum())
+    if not total > 0:
+        raise DataError("the mesh has zero surface area: nothing to sample")
+    # open3d (0.20): each sample picks its triangle from a discrete distribution weighted by area, i.e.
+    # multinomial counts per triangle
+    rng = np.random.default_rng(seed)
+    counts = rng.multinomial(n, area / total)
+    ends = np.cumsum(counts)
+    cuts = np.searchsorted(ends, np.arange(chunk, n, chunk), side="left") + 1
+    bounds = np.unique(np.r_[0, np.minimum(cuts, len(f)), len(f)])
+    for f0, f1 in zip(bounds[:-1], bounds[1:]):
+        fid = np.repeat(np.arange(f0, f1), counts[f0:f1])
+        if len(fid) == 0:
+            continue
+        r1 = np.sqrt(rng.random(len(fid)))[:, None]
+        r2 = rng.random(len(fid))[:, None]
+        t = f[fid]
+        yield (1.0 - r1) * v[t[:, 0]] + r1 * (1.0 - r2) * v[t[:, 1]] + r1 * r2 * v[t[:, 2]]
+
+
+def sample_points_uniformly(vertices, faces, n: int, seed: int = 0) -> np.ndarray:
+    """open3d's ``TriangleMesh.sample_points_uniformly(n)``: each sample's triangle drawn with probability
+    proportional to its area (multinomial counts per triangle), placed with barycentric coordinates
+    (1 - sqrt(r1), sqrt(r1) (1 - r2), sqrt(r1) r2), r1, r2 uniform. Deterministic for a seed (numpy's
+    generator instead of open3d's). Returns [n,3] float64, grouped by triangle."""
+    chunks = list(_uniform_sample_chunks(vertices, faces, n, seed))
+    return np.concatenate(chunks) if chunks else np.zeros((0, 3))
+
+
+def _voxel_keys(points: np.ndarray, origin: np.ndarray, voxel_m: float) -> np.ndarray:
+    q = np.floor((points - origin) / voxel_m).astype(np.int64)
+    if q.size and (q.min() < 0 or q.max() >= 1 << 21):
+        raise DataError(f"voxel_down_sample: the points span more than {(1 << 21) * voxel_m:.0f} m")
+    return (q[:, 0] << 42) | (q[:, 1] << 21) | q[:, 2]
+
+
+def voxel_down_sample(points, voxel_m: float, origin=None) -> np.ndarray:
+    """open3d's ``PointCloud.voxel_down_sample(voxel_m)``: the mean of the points in each voxel of a grid
+    anchored at the points' minimum bound minus half a voxel.
+
+    points: [N,3], or an iterable of [n,3] pieces (then `origin`, the grid anchor, must be given).
+    Returns [M,3] float64, one point per occupied voxel (ordered by voxel, not as open3d's hash map)."""
+    if isinstance(points, np.ndarray) or origin is None:
+        pieces = [_as_points(points, "points")]
+        if origin is None:
+            if len(pieces[0]) == 0:
+                return np.zeros((0, 3))
+            origin = pieces[0].min(axis=0) - 0.5 * voxel_m
+    else:
+        pieces = points
+    origin = np.asarray(origin, dtype=np.float64)
+    keys, sums, counts = [], [], []
+    for p in pieces:
+        if len(p) == 0:
+            continue
+        uk, inv = np.unique(_voxel_keys(p, origin, voxel_m), return_inverse=True)
+        inv = inv.reshape(-1)
+        keys.append(uk)
+        sums.append(np.stack([np.bincount(inv, weights=p[:, c], minlength=len(uk)) for c in range(3)], 1))
+        counts.append(np.bincount(inv, minlength=len(uk)).astype(np.float64))
+    if not keys:
+        return np.zeros((0, 3))
+    if len(keys) == 1:
+        return sums[0] / counts[0][:, None]
+    uk, inv = np.unique(np.concatenate(keys), return_inverse=True)
+    inv = inv.reshape(-1)
+    s = np.concatenate(sums)
+    tot = np.stack([np.bincount(inv, weights=s[:, c], minlength=len(uk)) for c in range(3)], 1)
+    return tot / np.bincount(inv, weights=np.concatenate(counts), minlength=len(uk))[:, None]
+
+
+def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m: float = ACC_TRUNCATION_M,
+                     comp_truncation_m: float = COMP_TRUNCATION_M) -> dict:
+    """Step 4 of the protocol on the down-sampled point sets: pred_ds [P,3], gt_ds [G,3] -> the dict of
+    METRIC_KEYS plus n_pred_far (predicted points dropped as >= acc_truncation_m from GT).
+
+    n_pred counts the predicted points that entered Accuracy / Precision, n_gt the GT points. No
+    predicted point (or none within acc_truncation_m) gives an infinite accuracy and zero precision."""
     if not threshold_m > 0:
         raise DataError(f"threshold_m must be positive, got {threshold_m}")
-    pred = _as_points(pred_points, "pred_points")
-    gt = cull_gt(gt_points, observed_points=observed_points, cull_distance_m=cull_distance_m,
-                 sensor_positions=sensor_positions, eval_radius_m=eval_radius_m)
-    if len(gt) == 0:
-        raise DataError(
-            "no GT point is left after culling (cull distance "
-            f"{cull_distance_m} m, eval radius {eval_radius_m} m): do the GT and the scans share a frame?"
-        )
-    lo = gt.min(axis=0) - threshold_m
-    hi = gt.max(axis=0) + threshold_m
-    pred = pred[np.all((pred >= lo) & (pred <= hi), axis=1)]
-    if len(pred) == 0:
-        log.warning("no predicted point inside the GT bounding box; metrics are infinite / zero")
-        return {
-            "accuracy_cm": math.inf, "completion_cm": math.inf, "chamfer_l1_cm": math.inf,
-            "completion_ratio": 0.0, "precision": 0.0, "f_score": 0.0,
-            "threshold_m": float(threshold_m), "n_pred": 0, "n_gt": int(len(gt)),
-        }
-    d_pred = mesh_distance(gt_mesh, pred) if gt_mesh is not None else None     # accuracy: pred -> GT
-    if d_pred is None:
-        d_pred = _nn_dist(gt, pred)
-    d_gt = mesh_distance(pred_mesh, gt) if pred_mesh is not None else None     # completion: GT -> pred
-    if d_gt is None:
-        d_gt = _nn_dist(pred, gt)
-    acc = float(d_pred.mean()) * 100.0
-    comp = float(d_gt.mean()) * 100.0
-    precision = float(np.mean(d_pred < threshold_m)) * 100.0
-    recall = float(np.mean(d_gt < threshold_m)) * 100.0
+    pred = _as_points(pred_ds, "pred_points")
+    gt = _as_points(gt_ds, "gt_points")
+    d_p = _nn_dist(gt, pred)                  # pred -> nearest GT (accuracy, precision)
+    near = d_p < acc_truncation_m
+    d_p = d_p[near]
+    d_r = np.minimum(_nn_dist(pred, gt), comp_truncation_m)  # GT -> nearest pred (completion, recall)
+    acc = float(d_p.mean()) * 100.0 if len(d_p) else math.inf
+    comp = float(d_r.mean()) * 100.0 if len(d_r) else math.inf
+    precision = float(np.mean(d_p < threshold_m)) * 100.0 if len(d_p) else 0.0
+    recall = float(np.mean(d_r < threshold_m)) * 100.0 if len(d_r) else 0.0
     f = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    if len(pred) == 0:
+        log.warning("no predicted point inside the GT bounding box; accuracy is infinite")
     return {
         "accuracy_cm": round(acc, 4),
         "completion_cm": round(comp, 4),
@@ -154,9 +265,51 @@ def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_point
         "precision": round(precision, 3),
         "f_score": round(f, 3),
         "threshold_m": float(threshold_m),
-        "n_pred": int(len(pred)),
+        "n_pred": int(near.sum()),
         "n_gt": int(len(gt)),
+        "protocol": PROTOCOL,
+        "n_pred_far": int(len(near) - near.sum()),
     }
+
+
+def _culled_or_fail(gt_points, cull_distance_m, eval_radius_m, **kw):
+    gt, idx = cull_gt(gt_points, cull_distance_m=cull_distance_m, eval_radius_m=eval_radius_m, return_index=True,
+                      **kw)
+    if len(gt) == 0:
+        raise DataError(
+            "no GT point is left after culling (cull distance "
+            f"{cull_distance_m} m, eval radius {eval_radius_m} m): do the GT and the scans share a frame?"
+        )
+    return gt, idx
+
+
+def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_points=None,
+             cull_distance_m: float = 0.3, sensor_positions=None, eval_radius_m: float = -1.0,
+             down_sample_m: float = DOWN_SAMPLE_M, acc_truncation_m: float = ACC_TRUNCATION_M,
+             comp_truncation_m: float = COMP_TRUNCATION_M) -> dict:
+    """The protocol on a predicted point set (e.g. samples of a mesh): cull the GT, crop the prediction
+    points to the GT box (z grown by down_sample_m), voxel-down-sample both, then :func:`protocol_metrics`.
+
+    Args:
+      pred_points: [P,3] points on the predicted surface (world frame, metres).
+      gt_points: [G,3] GT surface points (world frame).
+      threshold_m: distance threshold of precision / completion ratio / F-score.
+      observed_points: [O,3] scan points in the world frame, or None for no culling.
+      cull_distance_m: GT points farther than this from every observed point are dropped.
+      sensor_positions: [S,3] sensor positions in the world frame (needed when eval_radius_m > 0).
+      eval_radius_m: > 0 keeps only GT within this distance of some sensor position.
+      down_sample_m: voxel of the down-sampling (0: none).
+
+    Returns: dict with the keys of METRIC_KEYS (+ n_pred_far); see :func:`protocol_metrics`.
+    """
+    pred = _as_points(pred_points, "pred_points")
+    gt, _ = _culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
+                            sensor_positions=sensor_positions)
+    lo, hi = crop_box(gt, down_sample_m)
+    pred = pred[np.all((pred >= lo) & (pred <= hi), axis=1)]
+    if down_sample_m > 0:
+        pred, gt = voxel_down_sample(pred, down_sample_m), voxel_down_sample(gt, down_sample_m)
+    return protocol_metrics(pred, gt, threshold_m, acc_truncation_m, comp_truncation_m)
 
 
 def _load_mesh(mesh, where: str = "mesh"):
@@ -177,7 +330,7 @@ def _load_mesh(mesh, where: str = "mesh"):
 
 
 def sample_mesh(mesh, n: int, seed: int = 0) -> np.ndarray:
-    """Sample n points uniformly (area-weighted) on a triangle mesh.
+    """Sample n points uniformly (area-weighted, independent draws) on a triangle mesh.
 
     Args:
       mesh: trimesh.Trimesh or a path to a mesh file.
@@ -206,15 +359,116 @@ def sample_mesh(mesh, n: int, seed: int = 0) -> np.ndarray:
     return t[:, 0] + u[:, :1] * (t[:, 1] - t[:, 0]) + u[:, 1:] * (t[:, 2] - t[:, 0])
 
 
-def evaluate_mesh(mesh, gt_points, *, n_samples: int = 1_000_000, seed: int = 0, **kw) -> dict:
-    """evaluate(sample_mesh(mesh, n_samples, seed), gt_points, pred_mesh=mesh, **kw); see :func:`evaluate`.
+def signed_error_by_class(pred_points, gt_points, gt_normals, gt_classes, class_names,
+                          max_dist_m: float = SIGNED_MAX_M) -> dict:
+    """Mean signed surface error per GT class: {class name: {"mean_cm", "median_cm", "n"}}.
 
-    An empty mesh (no faces) gives the metrics of an empty prediction (infinite distances, zero ratios).
-    """
+    For each predicted point p (after crop and down-sampling) whose nearest GT point g is closer than
+    max_dist_m, the signed distance is dot(p - g, n_g) with n_g the GT normal (pointing out of solids /
+    up from the ground: positive = the predicted surface lies outside / above the true one); the values
+    are grouped by g's class. Classes that no predicted point reaches are left out."""
+    pred = _as_points(pred_points, "pred_points")
+    gt = _as_points(gt_points, "gt_points")
+    nrm = np.asarray(gt_normals, dtype=np.float64)
+    cls = np.asarray(gt_classes).astype(np.int64)
+    if nrm.shape != gt.shape or cls.shape != (len(gt),):
+        raise DataError(f"signed error: GT normals {nrm.shape} / classes {cls.shape} do not match GT {gt.shape}")
+    d, i = _nn(gt, pred, upper=max_dist_m)
+    ok = d < max_dist_m
+    i = i[ok]
+    s = np.einsum("ij,ij->i", pred[ok] - gt[i], nrm[i])
+    c = cls[i]
+    out = {}
+    for k, name in enumerate(class_names):
+        sk = s[c == k]
+        if len(sk):
+            out[str(name)] = {"mean_cm": round(float(sk.mean()) * 100, 3),
+                              "median_cm": round(float(np.median(sk)) * 100, 3), "n": int(len(sk))}
+    return out
+
+
+def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
     m = _load_mesh(mesh)
-    if len(m.faces) == 0:
-        return evaluate(np.zeros((0, 3)), gt_points, **kw)
-    return evaluate(sample_mesh(m, n_samples, seed), gt_points, pred_mesh=m, **kw)
+    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64).reshape(-1, 3)
+
+
+def _evaluate_culled(vertices, faces, gt, *, threshold_m, n_samples, seed, down_sample_m, acc_truncation_m,
+                     comp_truncation_m):
+    """Steps 2-4 on an already culled GT [G,3]: (metrics, predicted points after crop and down-sampling)."""
+    lo, hi = crop_box(gt, down_sample_m)
+    v, f = crop_mesh(vertices, faces, lo, hi)
+    if len(f) == 0:
+        pred = np.zeros((0, 3))
+    else:
+        pieces = _uniform_sample_chunks(v, f, int(n_samples), seed)
+        if down_sample_m > 0:
+            pred = voxel_down_sample(pieces, down_sample_m, origin=v.min(axis=0) - 0.5 * down_sample_m)
+        else:
+            pred = np.concatenate(list(pieces))
+    gt_ds = voxel_down_sample(gt, down_sample_m) if down_sample_m > 0 else gt
+    m = protocol_metrics(pred, gt_ds, threshold_m, acc_truncation_m, comp_truncation_m)
+    m["n_pred_samples"] = int(n_samples) if len(f) else 0
+    return m, pred
+
+
+def evaluate_mesh(mesh, gt_points, *, n_samples: int = N_SAMPLES, seed: int = 0, threshold_m: float = 0.1,
+                  observed_points=None, cull_distance_m: float = 0.3, sensor_positions=None,
+                  eval_radius_m: float = -1.0, down_sample_m: float = DOWN_SAMPLE_M,
+                  acc_truncation_m: float = ACC_TRUNCATION_M, comp_truncation_m: float = COMP_TRUNCATION_M,
+                  protocol: str = PROTOCOL, gt_mesh=None) -> dict:
+    """The protocol on a predicted mesh (trimesh.Trimesh or a path): cull the GT, crop the mesh to the GT
+    box, sample n_samples points, down-sample, compare (see the module docstring and :func:`evaluate`).
+
+    An empty mesh (no faces, or none inside the box) gives the metrics of an empty prediction. With
+    protocol="surface" the result also has completion_surface_cm (kept GT points -> the cropped mesh,
+    exact, clamped at comp_truncation_m; needs open3d). gt_mesh is accepted for older callers and
+    ignored: nothing is measured against the GT mesh."""
+    del gt_mesh
+    if protocol not in PROTOCOLS:
+        raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
+    v, f = _mesh_arrays(mesh)
+    gt, _ = _culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
+                            sensor_positions=sensor_positions)
+    m, _ = _evaluate_culled(v, f, gt, threshold_m=threshold_m, n_samples=n_samples, seed=seed,
+                            down_sample_m=down_sample_m, acc_truncation_m=acc_truncation_m,
+                            comp_truncation_m=comp_truncation_m)
+    if protocol == "surface":
+        m.update(_surface_fields(v, f, gt, comp_truncation_m, down_sample_m))
+    return m
+
+
+def _surface_fields(v, f, gt, comp_truncation_m, down_sample_m) -> dict:
+    import trimesh
+
+    vc, fc = crop_mesh(v, f, *crop_box(gt, down_sample_m))
+    if len(fc) == 0:
+        return {"completion_surface_cm": round(comp_truncation_m * 100, 4)}
+    d = mesh_distance(trimesh.Trimesh(vc, fc, process=False), gt)
+    if d is None:
+        log.warning("open3d is not installed: no completion_surface_cm")
+        return {}
+    return {"completion_surface_cm": round(float(np.minimum(d, comp_truncation_m).mean()) * 100, 4)}
+
+
+def subdivide_mesh(vertices, faces, max_edge_m: float = FLOOR_MAX_EDGE_M) -> tuple[np.ndarray, np.ndarray]:
+    """The same surface with every edge at most max_edge_m long (trimesh's subdivide_to_size)."""
+    import trimesh
+
+    v, f = trimesh.remesh.subdivide_to_size(np.asarray(vertices, np.float64), np.asarray(faces, np.int64),
+                                            max_edge=max_edge_m, max_iter=64)
+    return np.asarray(v, np.float64), np.asarray(f, np.int64)
+
+
+def protocol_floor(gt_mesh, gt_points, max_edge_m: float = FLOOR_MAX_EDGE_M, **kw) -> dict:
+    """The protocol floor: :func:`evaluate_mesh` with the GT mesh itself as the prediction (same culling,
+    cropping, sampling and down-sampling; keyword arguments as evaluate_mesh). The GT mesh is first
+    subdivided to edges <= max_edge_m, so that the crop (which keeps whole triangles) does not drop a
+    20 m facade triangle that crosses the box; the surface is unchanged (only a strip narrower than
+    max_edge_m along the box's sides is lost, as for any mesh)."""
+    v, f = _mesh_arrays(gt_mesh)
+    import trimesh
+
+    return evaluate_mesh(trimesh.Trimesh(*subdivide_mesh(v, f, max_edge_m), process=False), gt_points, **kw)
 
 
 def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -230,7 +484,6 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
     else:
         _, idx = np.unique(q, axis=0, return_index=True)
     return points[np.sort(idx)]
-
 
 def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: int | None = None,
                        progress: bool = False, begin_frame: int = 0, end_frame: int = -1,
@@ -280,45 +533,154 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
     return obs, sensors
 
 
-def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_distance_m: float = 0.3,
-                       eval_radius_m: float = -1.0, n_samples: int = 1_000_000,
-                       max_frames_for_culling: int | None = None, begin_frame: int = 0, end_frame: int = -1,
-                       every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0) -> dict:
-    """Metrics of a mesh file against a sequence directory's ground truth (what `jaxmap eval` prints).
+def read_gt(data_dir) -> dict:
+    """The ground truth of a sequence directory: {"points" [G,3] float64, "normals" [G,3] or None,
+    "classes" [G] uint8 or None, "class_names" list or None, "mesh" path of gt_mesh.ply or None}.
 
-    Reads the mesh (PLY/OBJ/... via trimesh), ``data_dir/gt_points.ply`` (GT surface points, world frame)
-    and every scan of the sequence (observed points = scan points in the world frame, thinned to 5 cm;
-    sensor positions = pose translations), then calls :func:`evaluate_mesh`; with ``gt_mesh.ply``
-    present, Accuracy is measured against that surface. begin/end/every_frame select the frames whose
-    scans count as observed (those a run mapped); min/max_range_m crop them as the mapper did.
-    """
+    Class names come from meta.json ("gt": {"classes": [...]}), as `jaxmap synth` writes them."""
+    import json
+
     from jaxmap.io import read_points_ply
 
-    mesh_path = os.fspath(mesh_path)
     data_dir = os.fspath(data_dir)
-    if not os.path.isfile(mesh_path):
-        raise DataError(f"mesh file not found: {mesh_path}")
     gt_path = os.path.join(data_dir, "gt_points.ply")
     if not os.path.isdir(data_dir):
         raise DataError(f"data directory not found: {data_dir}")
     if not os.path.isfile(gt_path):
         raise DataError(f"{data_dir}: no gt_points.ply (ground-truth surface points); "
                         "`jaxmap synth` writes one, or convert the dataset's GT cloud to PLY")
+    pts, nrm, cls = read_points_ply(gt_path, return_normals=True, return_classes=True)
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
+        raise DataError(f"{gt_path}: expected a non-empty point cloud, got shape {pts.shape}")
+    names = None
+    meta_path = os.path.join(data_dir, "meta.json")
+    if cls is not None and os.path.isfile(meta_path):
+        with open(meta_path) as f:
+            names = (json.load(f).get("gt") or {}).get("classes")
+    mesh = os.path.join(data_dir, "gt_mesh.ply")
+    return {"points": pts[:, :3], "normals": nrm, "classes": cls, "class_names": names,
+            "mesh": mesh if os.path.isfile(mesh) else None}
+
+
+def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_distance_m: float = 0.3,
+                       eval_radius_m: float = -1.0, n_samples: int = N_SAMPLES,
+                       max_frames_for_culling: int | None = None, begin_frame: int = 0, end_frame: int = -1,
+                       every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0,
+                       floor: bool = False, protocol: str = PROTOCOL, seed: int = 0) -> dict:
+    """Metrics of a mesh file against a sequence directory's ground truth (what `jaxmap eval` prints).
+
+    Reads the mesh (PLY/OBJ/... via trimesh), ``data_dir/gt_points.ply`` (GT surface points, world frame,
+    with normals and classes when `jaxmap synth` wrote it) and every scan of the sequence (observed
+    points = scan points in the world frame, thinned to 5 cm; sensor positions = pose translations), and
+    applies the protocol (module docstring). begin/end/every_frame select the frames whose scans count as
+    observed (those a run mapped); min/max_range_m crop them as the mapper did.
+
+    Returns the dict of METRIC_KEYS (+ n_pred_far, n_pred_samples), plus "signed_error_cm" (per GT class,
+    :func:`signed_error_by_class`) when the GT has classes, "completion_surface_cm" with
+    protocol="surface", and with floor=True "floor": the same protocol with ``gt_mesh.ply`` as the
+    prediction (:func:`protocol_floor`; left out with a warning when the data has no GT mesh).
+    """
+    if protocol not in PROTOCOLS:
+        raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
+    mesh_path = os.fspath(mesh_path)
+    data_dir = os.fspath(data_dir)
+    if not os.path.isfile(mesh_path):
+        raise DataError(f"mesh file not found: {mesh_path}")
+    gtd = read_gt(data_dir)
     mesh = _load_mesh(mesh_path)
     if len(mesh.faces) == 0:
         raise DataError(f"{mesh_path}: the mesh has zero faces (and {len(mesh.vertices)} vertices); "
                         "there is no surface to evaluate")
-    gt = np.asarray(read_points_ply(gt_path), dtype=np.float64)
-    if gt.ndim != 2 or gt.shape[1] < 3 or len(gt) == 0:
-        raise DataError(f"{gt_path}: expected a non-empty point cloud, got shape {gt.shape}")
-    gt = gt[:, :3]
     observed, sensors = observed_points_of(data_dir, max_frames=max_frames_for_culling, begin_frame=begin_frame,
                                            end_frame=end_frame, every_frame=every_frame,
                                            min_range_m=min_range_m, max_range_m=max_range_m)
-    gt_mesh_path = os.path.join(data_dir, "gt_mesh.ply")
-    gt_mesh = _load_mesh(gt_mesh_path) if os.path.isfile(gt_mesh_path) else None
     log.info("eval: %d GT points, %d observed points (5 cm), %d sensor positions",
-             len(gt), len(observed), len(sensors))
-    return evaluate_mesh(mesh, gt, n_samples=n_samples, threshold_m=threshold_m, observed_points=observed,
-                         cull_distance_m=cull_distance_m, sensor_positions=sensors,
-                         eval_radius_m=eval_radius_m, gt_mesh=gt_mesh)
+             len(gtd["points"]), len(observed), len(sensors))
+    gt, idx = _culled_or_fail(gtd["points"], cull_distance_m, eval_radius_m, observed_points=observed,
+                              sensor_positions=sensors)
+    kw = dict(threshold_m=threshold_m, n_samples=n_samples, seed=seed, down_sample_m=DOWN_SAMPLE_M,
+              acc_truncation_m=ACC_TRUNCATION_M, comp_truncation_m=COMP_TRUNCATION_M)
+    v, f = _mesh_arrays(mesh)
+    m, pred = _evaluate_culled(v, f, gt, **kw)
+    if protocol == "surface":
+        m.update(_surface_fields(v, f, gt, COMP_TRUNCATION_M, DOWN_SAMPLE_M))
+    has_classes = gtd["classes"] is not None and gtd["normals"] is not None and gtd["class_names"]
+    if has_classes:
+        m["signed_error_cm"] = signed_error_by_class(pred, gt, gtd["normals"][idx], gtd["classes"][idx],
+                                                     gtd["class_names"])
+    if floor:
+        if gtd["mesh"] is None:
+            log.warning("%s has no gt_mesh.ply: no protocol floor", data_dir)
+        else:
+            key = _floor_key(data_dir, gtd, kw, cull_distance_m=cull_distance_m, eval_radius_m=eval_radius_m,
+                             max_frames_for_culling=max_frames_for_culling, begin_frame=begin_frame,
+                             end_frame=end_frame, every_frame=every_frame, min_range_m=min_range_m,
+                             max_range_m=max_range_m)
+            fm = _floor_cache(data_dir).get(key)
+            if fm is None:
+                fm, fpred = _evaluate_culled(*subdivide_mesh(*_mesh_arrays(gtd["mesh"])), gt, **kw)
+                if has_classes:
+                    fm["signed_error_cm"] = signed_error_by_class(fpred, gt, gtd["normals"][idx],
+                                                                  gtd["classes"][idx], gtd["class_names"])
+                _floor_cache_put(data_dir, key, fm)
+            m["floor"] = fm
+    return m
+
+
+FLOOR_CACHE = ".jaxmap_floor_cache.json"
+
+
+def _floor_key(data_dir: str, gtd: dict, kw: dict, **selection) -> str:
+    """What the floor depends on: the GT files (size and mtime), the scans' directory listing time and
+    every protocol setting. The floor of a scene costs a full evaluation (minutes at 10M samples) and
+    is the same for every run of that scene, so it is cached next to the data."""
+    import hashlib
+    import json
+
+    files = [os.path.join(data_dir, "gt_points.ply"), gtd["mesh"], os.path.join(data_dir, "poses.txt")]
+    stat = [(os.path.basename(f), os.path.getsize(f), os.path.getmtime(f)) for f in files if f and os.path.isfile(f)]
+    blob = json.dumps({"files": stat, "kw": kw, "sel": selection, "protocol": PROTOCOL}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:20]
+
+
+def _floor_cache(data_dir: str) -> dict:
+    import json
+
+    try:
+        with open(os.path.join(data_dir, FLOOR_CACHE)) as f:
+            return json.load(f)
+    except (OSError, ValueError):
+        return {}
+
+
+def _floor_cache_put(data_dir: str, key: str, floor_metrics: dict) -> None:
+    """Best effort: a read-only data directory just means the floor is recomputed next time."""
+    import json
+
+    cache = _floor_cache(data_dir)
+    cache[key] = floor_metrics
+    tmp = os.path.join(data_dir, f"{FLOOR_CACHE}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "w") as f:
+            json.dump(cache, f)
+        os.replace(tmp, os.path.join(data_dir, FLOOR_CACHE))
+    except OSError as e:
+        log.debug("floor cache not written in %s (%s)", data_dir, e)
+
+
+def format_metrics(m: dict, name: str = "mesh") -> str:
+    """A small table of a metrics dict of :func:`evaluate_mesh_file`: the floor row first (when
+    present), then the mesh, then the signed error per class (cm, mean / median / points)."""
+    head = f"{'':<8}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>8}{'F %':>8}   (protocol {m.get('protocol')}, " \
+           f"threshold {m.get('threshold_m')} m)"
+    rows = [head]
+    for label, r in (("floor", m.get("floor")), (name, m)):
+        if r:
+            rows.append(f"{label:<8}{r['accuracy_cm']:>8.2f}{r['completion_cm']:>8.2f}{r['chamfer_l1_cm']:>8.2f}"
+                        f"{r['completion_ratio']:>8.2f}{r['f_score']:>8.2f}")
+    se = m.get("signed_error_cm")
+    if se:
+        rows.append("signed error per class (cm, + = outside / above the GT surface): " + ", ".join(
+            f"{k} {v['mean_cm']:+.2f} (median {v['median_cm']:+.2f}, n {v['n']})" for k, v in se.items()))
+    return "\n".join(rows)

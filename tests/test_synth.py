@@ -120,16 +120,52 @@ def test_room_layout_and_trajectory(small_room):
 
 
 def test_gt_points_are_dense_uniform_samples(small_city, small_room):
-    for d, density in ((small_city, 40.0), (small_room, 5000.0)):
-        meta = json.loads((d / "meta.json").read_text())
-        pts, nrm = read_points_ply(d / "gt_points.ply", return_normals=True)
-        assert len(pts) == meta["gt"]["points"]
-        area = meta["gt"]["surface_area_m2"]
-        # hidden surfaces (under buildings, inside the tree crowns, ...) are removed, the rest is kept
-        assert 0.6 * area * density < len(pts) <= 1.01 * area * density
-        np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-5)
-        sub = pts[:: max(1, len(pts) // 20000)]
-        assert gt_distance(d, sub.astype(np.float64), refine_above=1e-4).max() < 1e-4
+    """The city's GT: >= 1000 samples per m^2 of every surface within 1 m of an observation (and none
+    farther), on the GT mesh, unit normals facing the sensor where scans hit, a class per point; the room's
+    GT covers the whole (observed) room at 5000 per m^2."""
+    from scipy.spatial import cKDTree
+
+    from jaxmap.synth.city import CITY_CLASSES
+
+    meta = json.loads((small_city / "meta.json").read_text())
+    pts, nrm, cls = read_points_ply(small_city / "gt_points.ply", return_normals=True, return_classes=True)
+    assert len(pts) == meta["gt"]["points"] and meta["gt"]["density_per_m2"] >= 1000.0
+    assert meta["gt"]["classes"] == list(CITY_CLASSES) and cls.dtype == np.uint8 and cls.max() < len(CITY_CLASSES)
+    counts = np.bincount(cls, minlength=len(CITY_CLASSES))
+    assert meta["gt"]["class_points"] == dict(zip(CITY_CLASSES, counts.tolist()))
+    for c in ("road", "sidewalk", "curb", "building", "car", "vegetation", "pole", "fence"):
+        assert counts[CITY_CLASSES.index(c)] > 1000, c
+    np.testing.assert_allclose(np.linalg.norm(nrm, axis=1), 1.0, atol=1e-5)
+    sub = pts[:: max(1, len(pts) // 20000)]
+    assert gt_distance(small_city, sub.astype(np.float64), refine_above=1e-4).max() < 1e-4  # on the GT mesh
+    # within 1 m of an observation (scans thinned to 10 cm voxels for the test: + 0.09 m), and dense there
+    seq = open_sequence(small_city)
+    obs = world_points(seq)
+    d, _ = cKDTree(obs).query(pts[:: max(1, len(pts) // 50000)], workers=-1)
+    assert d.max() < 1.0 + 0.09
+    rng = np.random.default_rng(0)
+    tree = cKDTree(pts)
+    road = pts[cls == CITY_CLASSES.index("road")]
+    centres = road[rng.choice(len(road), 300, replace=False)]
+    centres = centres[cKDTree(obs).query(centres)[0] < 0.3]  # observed road: all its disks lie within 1 m
+    r = 0.25
+    inside = np.array([len(tree.query_ball_point(c, r)) for c in centres])  # disks on the flat road
+    density = inside.mean() / (np.pi * r * r)
+    assert len(centres) > 100 and 0.97 * 1000 < density < 1.03 * 1000, density
+    # normals face the sensor that hit the surface (the signed error's "outside")
+    fr = seq.frame(0)
+    hits = transform_points(fr.pose, fr.points.astype(np.float64))
+    dd, j = tree.query(hits)
+    ok = dd < 0.02
+    facing = np.einsum("ij,ij->i", fr.pose[:3, 3] - hits[ok], nrm[j[ok]]) > 0
+    assert ok.sum() > 5000 and facing.mean() > 0.98
+    # the room: everything is observed, 5000 per m^2, hidden surfaces removed, classes
+    meta = json.loads((small_room / "meta.json").read_text())
+    pts, nrm, cls = read_points_ply(small_room / "gt_points.ply", return_normals=True, return_classes=True)
+    area = meta["gt"]["surface_area_m2"]
+    assert 0.6 * area * 5000 < len(pts) <= 1.01 * area * 5000
+    assert {"floor", "wall", "ceiling", "table", "sofa"} <= {k for k, n in meta["gt"]["class_points"].items() if n > 0}
+    assert gt_distance(small_room, pts[::200].astype(np.float64), refine_above=1e-4).max() < 1e-4
 
 
 def test_surface_sampler_is_uniform():
@@ -181,7 +217,8 @@ def test_regenerating_removes_stale_frames(tmp_path):
 
 def test_pedestrians_are_in_scans_not_in_gt(tmp_path, small_city):
     generate_city(tmp_path, seed=0, small=True, n_frames=3, pedestrians=True)
-    h0, h1 = hash_tree(small_city), hash_tree(tmp_path)
+    generate_city(tmp_path / "plain", seed=0, small=True, n_frames=3)  # (the GT covers what the frames saw)
+    h0, h1 = hash_tree(tmp_path / "plain"), hash_tree(tmp_path)
     assert h1["gt_mesh.ply"] == h0["gt_mesh.ply"] and h1["gt_points.ply"] == h0["gt_points.ply"]
     peds = json.loads((tmp_path / "pedestrians.json").read_text())
     assert len(peds["frames"]) == 3 and len(peds["frames"][0]) == 4
@@ -270,9 +307,9 @@ def test_long_city_end_to_end(tmp_path):
     for k in ("building", "trunk", "crown", "car", "fence", "railing", "pole", "sign"):
         assert meta["objects"].get(k, 0) > 0, k
     assert min(meta["objects"][k] for k in ("building", "trunk", "car")) > 150  # ~5x the default's
-    # the GT keeps the default density: ~100 samples per m^2 of visible surface
+    # the GT keeps the default density, 1000 per m^2, but only near what the 3 frames observed
     area = meta["gt"]["surface_area_m2"]
-    assert meta["gt"]["density_per_m2"] == 100.0 and 0.6 * area * 100 < meta["gt"]["points"] <= 1.01 * area * 100
+    assert meta["gt"]["density_per_m2"] == 1000.0 and 200_000 < meta["gt"]["points"] < 0.2 * area * 1000
     seq = open_sequence(tmp_path)
     assert len(seq) == 3 and min(len(f.points) for f in seq) > 30_000
     sub = world_points(seq)[::50]
@@ -281,3 +318,51 @@ def test_long_city_end_to_end(tmp_path):
         main(["synth", "room", "--long", "--out", str(tmp_path / "r")])
     with pytest.raises(ValueError, match="small"):
         generate_city(tmp_path / "x", small=True, long=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# the second layout (a curved ring boulevard with detached houses)
+# ------------------------------------------------------------------------------------------------
+
+
+def test_suburb_layout(tmp_path, small_city):
+    """The suburb: a different scene and a non-rectangular closed loop with the same sensor, files and GT
+    classes; scans lie on its GT mesh; deterministic; --seed / --noise / --beams combine with it."""
+    from jaxmap.cli import main
+    from jaxmap.synth.city import CITY_CLASSES
+
+    a = generate_city(tmp_path / "a", seed=3, small=True, layout="suburb")
+    meta = json.loads((tmp_path / "a" / "meta.json").read_text())
+    assert meta["layout"] == "suburb" and meta["frames"] == 15 and meta["trajectory"]["closed_loop"]
+    assert meta["sensor"]["beams"] == 32 and meta["gt"]["classes"] == list(CITY_CLASSES)
+    for c in ("road", "sidewalk", "curb", "building", "car", "vegetation", "fence"):
+        assert meta["gt"]["class_points"][c] > 1000, c
+    assert meta["objects"]["house"] >= 5 and meta["objects"]["car"] >= 3
+    assert sorted(os.listdir(tmp_path / "a")) == sorted(os.listdir(small_city))
+    seq = open_sequence(tmp_path / "a")
+    P = seq.poses[:, :3, 3]
+    # a closed loop that is no rounded rectangle: the heading turns steadily (never along the axes for
+    # long), all frames on one convex curve around the origin, evenly spaced
+    yaw = np.arctan2(seq.poses[:, 1, 0], seq.poses[:, 0, 0])
+    turn = (np.diff(np.r_[yaw, yaw[0]]) + np.pi) % (2 * np.pi) - np.pi
+    assert np.all(turn > 0.05) and turn.max() < 0.8 and abs(turn.sum() - 2 * np.pi) < 1e-6
+    steps = np.linalg.norm(np.diff(np.r_[P, P[:1]], axis=0), axis=1)
+    assert steps.max() < 1.05 * steps.min()
+    d = gt_distance(tmp_path / "a", world_points(seq)[::20], refine_above=1e-4)
+    assert d.max() < 1e-3  # the scans lie on the GT mesh
+    # different from the grid; the same files again for the same seed
+    assert hash_tree(tmp_path / "a")["gt_mesh.ply"] != hash_tree(small_city)["gt_mesh.ply"]
+    generate_city(tmp_path / "b", seed=3, small=True, layout="suburb", n_frames=1)
+    generate_city(tmp_path / "c", seed=3, small=True, layout="suburb", n_frames=1)
+    assert hash_tree(tmp_path / "b") == hash_tree(tmp_path / "c")
+    assert a["gt"]["mesh_triangles"] == json.loads((tmp_path / "b" / "meta.json").read_text())["gt"]["mesh_triangles"]
+    # the CLI options combine with it
+    assert main(["synth", "city", "--layout", "suburb", "--small", "--frames", "1", "--seed", "4", "--noise", "0.02",
+                 "--beams", "8", "--out", str(tmp_path / "n")]) == 0
+    meta = json.loads((tmp_path / "n" / "meta.json").read_text())
+    assert meta["layout"] == "suburb" and meta["seed"] == 4 and meta["sensor"]["beams"] == 8
+    assert meta["sensor"]["noise_m"] == 0.02
+    with pytest.raises(ValueError, match="layout"):
+        generate_city(tmp_path / "x", layout="ring")
+    with pytest.raises(ValueError, match="long"):
+        generate_city(tmp_path / "x", layout="suburb", long=True)

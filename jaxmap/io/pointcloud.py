@@ -61,12 +61,42 @@ def read_scan(path) -> np.ndarray:
         pts = np.fromfile(path, dtype="<f4").reshape(-1, 4)[:, :3]
     elif ext == ".ply":
         pts = read_points_ply(path)
+        _warn_if_mesh(path, len(pts))
     elif ext == ".pcd":
         pts = read_pcd(path)
     else:
         raise DataError(f"{path}: unsupported scan format '{ext}'; use .bin (KITTI), .ply or .pcd")
     pts = np.ascontiguousarray(pts, dtype=np.float32)
     return drop_nonfinite(pts, path)
+
+
+_mesh_scan_dirs: set[str] = set()
+
+
+def ply_face_count(path) -> int:
+    """Faces a PLY file declares in its header (0 for a point cloud); reads the header only."""
+    with open(os.fspath(path), "rb") as f:
+        for _ in range(200):
+            words = f.readline().split()
+            if not words or words[0] == b"end_header":
+                break
+            if words[0] == b"element" and len(words) >= 3 and words[1] == b"face":
+                try:
+                    return int(words[2])
+                except ValueError:
+                    return 0
+    return 0
+
+
+def _warn_if_mesh(path: str, n_vertices: int) -> None:
+    """A scan that is a triangle mesh is read as its vertices, with a warning (once per directory)."""
+    faces = ply_face_count(path)
+    d = os.path.dirname(os.path.abspath(path))
+    if faces and d not in _mesh_scan_dirs:
+        _mesh_scan_dirs.add(d)
+        log.warning("%s: a triangle mesh (%d faces), not a point cloud: read as a scan of its %d vertices, which "
+                    "samples the surface unevenly; export the LiDAR points instead (reported once for %s)",
+                    path, faces, n_vertices, d)
 
 
 def write_scan_bin(path, points, intensity=None) -> None:
@@ -235,20 +265,26 @@ def _ascii_rows(rows, props, path, name):
     return {p: arr[:, i] for i, (p, _) in enumerate(props)}
 
 
-def read_points_ply(path, return_normals: bool = False):
+def read_points_ply(path, return_normals: bool = False, return_classes: bool = False):
     """Read the vertices of a PLY file (point cloud or mesh) as [N,3] float32.
 
     With `return_normals=True` returns (points [N,3], normals [N,3] float32 or None if the file has
-    no nx,ny,nz). Raises DataError for a missing or unreadable file.
+    no nx,ny,nz); with `return_classes=True` also (last) the per-point semantic class [N] uint8 (the
+    `class` property of `jaxmap synth`'s gt_points.ply) or None. Raises DataError for a missing or
+    unreadable file.
     """
     path = os.fspath(path)
     v = _parse_ply(path, want_faces=False)["vertex"]
     pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
-    if not return_normals:
+    if not return_normals and not return_classes:
         return pts
-    if all(k in v for k in ("nx", "ny", "nz")):
-        return pts, np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32)
-    return pts, None
+    out = [pts]
+    if return_normals:
+        out.append(np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32)
+                   if all(k in v for k in ("nx", "ny", "nz")) else None)
+    if return_classes:
+        out.append(np.asarray(v["class"]).astype(np.uint8) if "class" in v else None)
+    return tuple(out)
 
 
 def read_mesh_ply(path):
@@ -268,8 +304,9 @@ def read_mesh_ply(path):
     return verts, faces.astype(np.int32)
 
 
-def write_points_ply(path, points, normals=None) -> None:
-    """Write a binary little-endian PLY point cloud: float32 x,y,z (+ nx,ny,nz if normals given)."""
+def write_points_ply(path, points, normals=None, classes=None) -> None:
+    """Write a binary little-endian PLY point cloud: float32 x,y,z (+ nx,ny,nz if normals given)
+    (+ a uchar `class` per point if classes [N] given: a semantic class id, 0-255)."""
     points = np.asarray(points, dtype="<f4")
     if points.ndim != 2 or points.shape[1] != 3:
         raise DataError(f"{path}: points must have shape [N,3], got {points.shape}")
@@ -283,7 +320,16 @@ def write_points_ply(path, points, normals=None) -> None:
         props += ["nx", "ny", "nz"]
     data = np.ascontiguousarray(np.concatenate(cols, axis=1), dtype="<f4")
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {points.shape[0]}"]
-    header += [f"property float {p}" for p in props] + ["end_header"]
+    header += [f"property float {p}" for p in props]
+    if classes is not None:
+        classes = np.asarray(classes)
+        if classes.shape != (points.shape[0],) or (classes.size and (classes.min() < 0 or classes.max() > 255)):
+            raise DataError(f"{path}: classes must be [N] integers in 0..255, got shape {classes.shape}")
+        rec = np.empty(points.shape[0], dtype=[("f", "<f4", (data.shape[1],)), ("c", "u1")])
+        rec["f"], rec["c"] = data, classes
+        data = rec
+        header.append("property uchar class")
+    header.append("end_header")
     _makedirs_for(path)
     with open(os.fspath(path), "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))

@@ -17,7 +17,8 @@ alternate ends; not closed), ~1.1 m per frame, so the area seen grows about line
     calib.txt                "Tr:" = T_cam_velo (KITTI's typical velo->cam matrix, orthonormalised)
     poses.txt                camera-frame poses P_i, such that inv(Tr) @ P_i @ Tr = T_world_lidar_i
     gt_mesh.ply              triangle mesh of the static scene (world frame)
-    gt_points.ply            dense uniform samples of it (+ normals), hidden surfaces removed
+    gt_points.ply            uniform samples of it at 1000 per m^2 within 1 m of an observation (+ normals,
+                             + a uchar class per point: CITY_CLASSES), hidden surfaces removed
     meta.json                stats and parameters (deterministic: no timings)
     pedestrians.json         (only with pedestrians=True) per-frame pedestrian boxes
 
@@ -85,17 +86,17 @@ class CityPreset:
 
 DEFAULT = CityPreset(half_extent=50.0, street_x=20.0, street_y=14.0, road_width=8.0, sidewalk=4.0,
                      lane_offset=0.5, corner_radius=5.0, frames=130, beams=64, azimuth_steps=1024,
-                     gt_density=100.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8)
+                     gt_density=1000.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8)
 SMALL = CityPreset(half_extent=20.0, street_x=10.0, street_y=8.0, road_width=7.0, sidewalk=2.0,
                    lane_offset=0.5, corner_radius=3.0, frames=15, beams=32, azimuth_steps=512,
-                   gt_density=40.0, tree_from_curb=0.9, ped_from_curb=1.5, pedestrians=4)
+                   gt_density=1000.0, tree_from_curb=0.9, ped_from_curb=1.5, pedestrians=4)
 # The long drive: the DEFAULT's streets, sidewalks and sensor on a 7 x 6-block grid (N-S streets 40 m apart,
 # E-W streets 36 m apart, outer blocks 24 m deep); the route (`long_route`) is ~1127 m and `frames` puts
 # the frames ~1.1 m apart (street_x / street_y, the loop presets' streets, are unused). Parks in a few
 # scattered blocks, so fences and railings keep showing up along the drive.
 LONG = CityPreset(half_extent=128.0, street_x=0.0, street_y=0.0, road_width=8.0, sidewalk=4.0,
                   lane_offset=0.5, corner_radius=5.0, frames=1025, beams=64, azimuth_steps=1024,
-                  gt_density=100.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8,
+                  gt_density=1000.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8,
                   streets_x=(-100.0, -60.0, -20.0, 20.0, 60.0, 100.0), streets_y=(-72.0, -36.0, 0.0, 36.0, 72.0),
                   half_extent_y=100.0, parks=((1, 1), (4, 1), (2, 3), (5, 2), (3, 4)))
 
@@ -104,6 +105,14 @@ SENSOR_H = 1.73          # LiDAR height above the road (KITTI)
 ELEVATION_DEG = (-25.0, 2.0)
 MAX_RANGE = 50.0
 TILE = 2.0               # ground and curb faces are split into tiles of at most this size (m)
+# Ground truth: GT points are kept within GT_NEAR_M of an observation (a static-scene hit of any frame,
+# the hits thinned to one per OBS_VOXEL_M voxel); each carries one of CITY_CLASSES (uint8 index).
+GT_NEAR_M = 1.0
+OBS_VOXEL_M = 0.1
+CITY_CLASSES = ("road", "sidewalk", "curb", "building", "car", "vegetation", "pole", "fence")
+_KIND_CLASS = {"building": 3, "house": 3, "car": 4, "trunk": 5, "crown": 5, "hedge": 5, "pole": 6, "sign": 6,
+               "fence": 7, "railing": 7}  # "ground": road / sidewalk / curb by its normal and height
+LAYOUTS = ("grid", "suburb")
 
 
 # ------------------------------------------------------------------------------------------------
@@ -657,26 +666,38 @@ def _pedestrian_mesh(peds):
 
 def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
                   noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
-                  pedestrians: bool = False, long: bool = False) -> dict:
+                  pedestrians: bool = False, long: bool = False, layout: str = "grid") -> dict:
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
     small: 40 m x 40 m scene, 15 frames, 32 x 512 beams (seconds); default 100 m x 100 m, 130 frames
            ~1 m apart, 64 x 1024 beams.
     long: 256 m x 200 m city, a 1127 m serpentine drive (not closed), 1025 frames 1.1 m apart, the
-          default's 64 x 1024 beams and GT density (~35 s on 2 cores, 1.5 GB of RAM; 1.4 GB on disk:
-          1 GB of scans, 16M GT points; see `long_drive`).
+          default's 64 x 1024 beams and GT density (1 GB of scans; see `long_drive`).
     n_frames: frames evenly spaced over the one closed loop (default per preset); with long, the first
               n_frames of the drive at the preset's 1.1 m (spread over the whole route if more).
     noise_m: std of Gaussian range noise (m).  beams / azimuth_steps: override the LiDAR resolution.
     pedestrians: add boxes walking around the central block (long: around the first block on the left
                  of the drive) (in the scans, not in the ground truth).
+    layout: "grid" (the street grid above, the default) or "suburb" (`jaxmap.synth.suburb`: a curved
+            ring boulevard with detached houses, ~130 m non-rectangular loop; with small, a smaller ring).
+    The GT points (gt_points.ply) are samples at gt_density (1000 per m^2) of the static surfaces within
+    1 m of an observation (any frame's scan, without noise or pedestrians), hidden surfaces removed, with
+    normals and a class per point (CITY_CLASSES, names in meta.json "gt": "classes").
     Returns the stats written to meta.json, plus "elapsed_s" (not written, so files stay deterministic).
     """
     t_start = time.perf_counter()
     if small and long:
         raise ValueError("small and long are different presets; pick one")
+    if layout not in LAYOUTS:
+        raise ValueError(f"unknown city layout {layout!r}; choose from {', '.join(LAYOUTS)}")
+    if layout != "grid" and long:
+        raise ValueError("long is a grid preset; it does not combine with another layout")
     P = LONG if long else SMALL if small else DEFAULT
+    if layout == "suburb":
+        from jaxmap.synth import suburb
+
+        P = suburb.SMALL if small else suburb.DEFAULT
     n_frames = int(n_frames or P.frames)
     beams = int(beams or P.beams)
     azimuth_steps = int(azimuth_steps or P.azimuth_steps)
@@ -686,7 +707,9 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     scan_dir = C.prepare_out_dir(out_dir, "velodyne", ".bin")
 
     ped_block = None
-    if long:
+    if layout == "suburb":
+        path = suburb.ring_path(P)
+    elif long:
         # the city depends on the whole route, never on n_frames: a short run sees the same scene
         path, T_wl, spacing = long_drive(n_frames, P)
         xb, yb = _intervals(P)
@@ -694,7 +717,7 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     else:
         off = P.lane_offset
         path = LoopPath(P.street_x + off, P.street_y + off, P.corner_radius)
-    V, F, obj, scene = build_city(P, seed, path)
+    V, F, obj, scene = suburb.build_suburb(P, seed, path) if layout == "suburb" else build_city(P, seed, path)
     if not long:
         T_wl = lidar_poses(path, n_frames)
         spacing = path.length / n_frames
@@ -703,12 +726,18 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     # ---- scans
     caster = C.Raycaster(V, F)
     dirs_s = beam_directions(beams, azimuth_steps)
-    peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing, ped_block) if pedestrians else None
+    if pedestrians and layout == "suburb":
+        peds = suburb.pedestrian_boxes(P, seed, n_frames, 0.15 * spacing)
+    else:
+        peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing, ped_block) if pedestrians else None
     counts = []
+    observed = _ObservedPoints(OBS_VOXEL_M)
     for i in range(n_frames):
         R, o = T_wl[i, :3, :3], T_wl[i, :3, 3]
         dirs_w = dirs_s @ R.T
         t, nrm = caster.cast(o, dirs_w)
+        hit = np.isfinite(t) & (t <= MAX_RANGE)  # the static scene, noise free: what the GT must cover
+        observed.add(o + dirs_w[hit] * t[hit, None])
         if peds is not None:
             tp, nrm_p = C.Raycaster(*_pedestrian_mesh(peds[i])).cast(o, dirs_w)
             closer = tp < t
@@ -738,15 +767,15 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
 
     # ---- ground truth
     write_mesh_ply(os.path.join(out_dir, "gt_mesh.ply"), V, F)
-    # the long city has ~6x the default's surface: sample it in pieces to bound the peak memory
-    gt_pts, gt_nrm = _gt_points(V, F, obj, scene, P.gt_density, seed, chunk=2_000_000 if long else None)
-    write_points_ply(os.path.join(out_dir, "gt_points.ply"), gt_pts, gt_nrm)
+    # sampled in pieces of ~2M points (bounded memory), only faces that come within 1 m of an observation
+    gt_pts, gt_nrm, gt_cls = _gt_points(V, F, obj, scene, P.gt_density, seed, observed.points())
+    write_points_ply(os.path.join(out_dir, "gt_points.ply"), gt_pts, gt_nrm, gt_cls)
 
     kinds = {}
     for k in scene.kinds:
         kinds[k] = kinds.get(k, 0) + 1
     meta = {
-        "scene": "city", "seed": int(seed), "small": bool(small), "frames": n_frames,
+        "scene": "city", "layout": layout, "seed": int(seed), "small": bool(small), "frames": n_frames,
         "points_per_frame": C.points_stats(counts),
         "extent": {"min": C.rounded(V.min(0), 3), "max": C.rounded(V.max(0), 3)},
         "sensor": {"type": "lidar", "beams": beams, "azimuth_steps": azimuth_steps,
@@ -760,42 +789,89 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         "calib_Tr": C.rounded(Tr[:3].reshape(-1), 12),
         "objects": kinds, "pedestrians": (P.pedestrians if pedestrians else 0),
         "gt": {"mesh_triangles": int(len(F)), "points": int(len(gt_pts)),
-               "density_per_m2": P.gt_density, "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 2)},
+               "density_per_m2": P.gt_density, "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 2),
+               "near_observation_m": GT_NEAR_M, "classes": list(CITY_CLASSES),
+               "class_points": {c: int(n) for c, n in zip(CITY_CLASSES, np.bincount(gt_cls, minlength=len(CITY_CLASSES)))}},
     }
-    if long:  # (only here, so the other presets' meta.json stay as they were)
+    if long:
         meta["long"] = True
     C.write_json(os.path.join(out_dir, "meta.json"), meta)
     elapsed = time.perf_counter() - t_start
-    log.info("synth city: %d frames, %.0f points/frame, %d GT points -> %s (%.1f s)", n_frames,
+    log.info("synth city (%s): %d frames, %.0f points/frame, %d GT points -> %s (%.1f s)", layout, n_frames,
              meta["points_per_frame"]["mean"], len(gt_pts), out_dir, elapsed)
     return dict(meta, elapsed_s=round(elapsed, 2), out_dir=out_dir)
 
 
-def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int, chunk: int | None = None):
-    """Uniform samples of the static mesh with hidden samples (inside other solids) removed:
-    (points [N,3] float32, normals [N,3] float32), world frame.
+class _ObservedPoints:
+    """World-frame scan points of all frames, thinned to one per voxel (bounded memory)."""
 
-    chunk: None samples all faces in one go (the loop presets' files); else runs of consecutive faces
-    holding ~chunk expected samples each, with their own seeds (same density, bounded memory).
-    """
-    if chunk is None:
-        return _visible_samples(V, F, obj, scene, density, seed * 7919 + 11)
-    expected = np.cumsum(C.mesh_area(V, F) * density)
+    def __init__(self, voxel_m: float):
+        from jaxmap.metrics import voxel_thin
+
+        self.voxel_m, self._thin = voxel_m, voxel_thin
+        self.chunks, self.pending = [], 0
+
+    def add(self, pts: np.ndarray) -> None:
+        if len(pts) == 0:
+            return
+        self.chunks.append(self._thin(pts, self.voxel_m))
+        self.pending += len(self.chunks[-1])
+        if len(self.chunks) > 1 and self.pending > 4_000_000:
+            self.chunks = [self._thin(np.concatenate(self.chunks), self.voxel_m)]
+            self.pending = len(self.chunks[0])
+
+    def points(self) -> np.ndarray:
+        if not self.chunks:
+            return np.zeros((0, 3))
+        return self._thin(np.concatenate(self.chunks), self.voxel_m)
+
+
+def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int, observed: np.ndarray,
+               chunk: int = 2_000_000):
+    """Uniform samples of the static mesh within GT_NEAR_M of an observed point, hidden samples (inside
+    other solids) removed: (points [N,3] float32, normals [N,3] float32, classes [N] uint8), world frame.
+
+    Only faces whose bounding sphere comes within GT_NEAR_M of an observation are sampled, in runs of
+    consecutive faces holding ~chunk expected samples each, with their own seeds (bounded memory)."""
+    from scipy.spatial import cKDTree
+
+    empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.uint8))
+    if len(observed) == 0:
+        return empty
+    tree = cKDTree(observed)
+    tri = V[F]
+    centre = tri.mean(axis=1)
+    radius = np.linalg.norm(tri - centre[:, None], axis=2).max(axis=1)
+    d, _ = tree.query(centre, distance_upper_bound=float(radius.max()) + GT_NEAR_M, workers=-1)
+    cand = np.flatnonzero(d <= radius + GT_NEAR_M)
+    if len(cand) == 0:
+        return empty
+
+    def near(p):
+        return tree.query(p, distance_upper_bound=GT_NEAR_M, workers=-1)[0] <= GT_NEAR_M
+
+    obj_class = np.array([_KIND_CLASS.get(k, 255) for k in scene.kinds], dtype=np.uint8)
+    expected = np.cumsum(C.mesh_area(V, F[cand]) * density)
     cuts = np.searchsorted(expected, np.arange(chunk, expected[-1], chunk))
-    bounds = np.unique(np.r_[0, cuts, len(F)])
-    pts, nrm = [], []
-    for k, (f0, f1) in enumerate(zip(bounds[:-1], bounds[1:])):
+    bounds = np.unique(np.r_[0, cuts, len(cand)])
+    pts, nrm, cls = [], [], []
+    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
         sub_seed = int(np.random.SeedSequence([seed, 404, k]).generate_state(1)[0])
-        p, n = _visible_samples(V, F[f0:f1], obj[f0:f1], scene, density, sub_seed)
+        p, n, c = _visible_samples(V, F[cand[a:b]], obj[cand[a:b]], scene, density, sub_seed, near, obj_class)
         pts.append(p)
         nrm.append(n)
-    return np.concatenate(pts), np.concatenate(nrm)
+        cls.append(c)
+    return np.concatenate(pts), np.concatenate(nrm), np.concatenate(cls)
 
 
-def _visible_samples(V, F, obj, scene: _Scene, density: float, seed: int):
-    """Samples of faces F [n,3] (object ids obj [n], non-decreasing) that pass the hidden-tests of their
-    objects: (points [N,3] float32, normals [N,3] float32)."""
+def _visible_samples(V, F, obj, scene: _Scene, density: float, seed: int, near=None, obj_class=None):
+    """Samples of faces F [n,3] (object ids obj [n], non-decreasing) that pass near(points) (when given)
+    and the hidden-tests of their objects: (points [N,3] float32, normals [N,3] float32, classes [N]
+    uint8: obj_class of the object, or for the ground road / sidewalk / curb by normal and height)."""
     pts, nrm, fid = C.sample_surface(V, F, density, seed=seed, return_faces=True)
+    if near is not None and len(pts):
+        ok = near(pts)
+        pts, nrm, fid = pts[ok], nrm[ok], fid[ok]
     # faces are grouped by object (in _Scene order) and samples by face: each object's samples are one run
     sample_obj = obj[fid]
     keep = np.ones(len(pts), bool)
@@ -817,4 +893,13 @@ def _visible_samples(V, F, obj, scene: _Scene, density: float, seed: int):
         else:
             sel = np.arange(a, b)
         keep[sel[inside(pts[sel])]] = False
-    return pts[keep].astype(np.float32), nrm[keep]
+    pts, nrm, sample_obj = pts[keep], nrm[keep], sample_obj[keep]
+    if obj_class is None:
+        obj_class = np.array([_KIND_CLASS.get(k, 255) for k in scene.kinds], dtype=np.uint8)
+    cls = obj_class[sample_obj]
+    ground = cls == 255
+    up = nrm[:, 2] > 0.5
+    cls[ground & up & (pts[:, 2] < 0.5 * CURB_H)] = 0          # road
+    cls[ground & up & (pts[:, 2] >= 0.5 * CURB_H)] = 1         # sidewalk (and the raised blocks / lots)
+    cls[ground & ~up] = 2                                      # curb faces
+    return pts.astype(np.float32), nrm, cls

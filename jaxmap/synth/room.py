@@ -11,7 +11,8 @@ is one step before the first, so the trajectory closes a loop. Written in the de
     intrinsics.txt     "fx fy cx cy"
     poses.txt          12 numbers a line, T_world_camera (camera: x right, y down, z forward)
     gt_mesh.ply        triangle mesh of the room and furniture (world frame)
-    gt_points.ply      dense uniform samples of it (+ normals), hidden surfaces removed
+    gt_points.ply      dense uniform samples of it (+ normals, + a uchar class per point: ROOM_CLASSES),
+                       hidden surfaces removed (7000 per m^2, small 5000: the whole room is observed)
     meta.json          stats and parameters (deterministic: no timings)
 
 Everything is deterministic from `seed` (furniture placement jitter, sizes, noise).
@@ -38,6 +39,11 @@ DEFAULT_FRAMES = 120
 SMALL_FRAMES = 10
 GT_DENSITY = 7000.0          # samples per m^2 (one per ~1.4 cm^2)
 SMALL_GT_DENSITY = 5000.0    # one per 2 cm^2
+# per-point GT classes (uint8 index into ROOM_CLASSES); the "walls" box splits into floor / wall / ceiling
+ROOM_CLASSES = ("floor", "wall", "ceiling", "table", "chair", "cabinet", "sofa", "pillar", "bin", "ball", "lamp",
+                "shelf")
+_KIND_CLASS = {"table": 3, "table_leg": 3, "chair": 4, "cabinet": 5, "sofa": 6, "pillar": 7, "bin": 8, "ball": 9,
+               "lamp_pole": 10, "lamp_shade": 10, "shelf": 11, "books": 11}
 
 
 def _yaw(R_yaw):
@@ -211,8 +217,13 @@ def generate_room(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     for oid, inside in hidden:
         sel = np.flatnonzero(obj[fid] == oid)
         keep[sel[inside(pts[sel])]] = False
-    pts, nrm = pts[keep].astype(np.float32), nrm[keep]
-    write_points_ply(os.path.join(out_dir, "gt_points.ply"), pts, nrm)
+    pts, nrm, fid = pts[keep].astype(np.float32), nrm[keep], fid[keep]
+    cls = np.array([_KIND_CLASS.get(k, 255) for k in kinds], dtype=np.uint8)[obj[fid]]
+    box = cls == 255  # the room's own faces (normals point into the room)
+    cls[box & (nrm[:, 2] > 0.5)] = 0
+    cls[box & (nrm[:, 2] < -0.5)] = 2
+    cls[box & (np.abs(nrm[:, 2]) <= 0.5)] = 1
+    write_points_ply(os.path.join(out_dir, "gt_points.ply"), pts, nrm, cls)
 
     kind_counts = {}
     for k in kinds:
@@ -228,7 +239,8 @@ def generate_room(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         "trajectory": {"closed_loop": True, "frame_step_m": round(float(step), 4)},
         "objects": kind_counts,
         "gt": {"mesh_triangles": int(len(F)), "points": int(len(pts)), "density_per_m2": density,
-               "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 3)},
+               "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 3), "classes": list(ROOM_CLASSES),
+               "class_points": {c: int(n) for c, n in zip(ROOM_CLASSES, np.bincount(cls, minlength=len(ROOM_CLASSES)))}},
     }
     C.write_json(os.path.join(out_dir, "meta.json"), meta)
     elapsed = time.perf_counter() - t_start
