@@ -98,7 +98,7 @@ def test_custom_jvp_weights_give_the_autodiff_loss_gradients():
     pts = ((vox[:, None] + rng.uniform(0.02, 0.98, (g, k, 3))) * 0.2).astype(np.float32)
     from jaxmap.n3.hierarchical import Batch
 
-    b = Batch(jnp.zeros(g, jnp.int32), jnp.asarray(pts), jnp.asarray(rng.normal(size=(g, k)) * 0.1, jnp.float32),
+    b = Batch(jnp.zeros(g, jnp.int32), jnp.asarray(vox), jnp.asarray(pts), jnp.asarray(rng.normal(size=(g, k)) * 0.1, jnp.float32),
               jnp.asarray(rng.uniform(size=(g, k)) < 0.7), jnp.ones((g, k), bool))
     feats = jnp.asarray(rng.normal(size=(g, 24, 8)) * 0.3, jnp.float32)
     _, params = init_decoder(jax.random.PRNGKey(0), 8, 32, 2)
@@ -117,30 +117,42 @@ def test_custom_jvp_weights_give_the_autodiff_loss_gradients():
     assert float(fast[0][1][1]) > 0  # the eikonal term is really there
 
 
-def test_sparse_adam_equals_dense_optax_adam_on_rows_first_touched_late():
-    """Rows first touched after 1000 steps (count > 1000) and every step from then on take dense
-    Adam's steps; rows never touched keep values and moments."""
+def test_sparse_adam_rows_first_touched_late_step_like_a_fresh_dense_adam():
+    """Per-row bias correction: rows first touched after 1000 steps take the steps of a dense Adam
+    started when they were first touched (a global count would scale their first steps by up to
+    ~3x here: 1 / sqrt(1 - b2^t) against 1 / (1 - b1^t)); rows touched all along take the steps of a
+    dense Adam over all 1010 steps; rows never touched keep values and moments."""
     rng = np.random.default_rng(4)
-    r, d = 16, 3
+    r, d, lr = 16, 3, 0.01
     init = jnp.asarray(rng.normal(size=(r, d)), jnp.float32)
     opt = adam.sparse_adam()
     update = jax.jit(opt.update)
     table, st = init, opt.init(init)
-    tx = optax.adam(0.01)
-    dense, dst = init, tx.init(init)
+    tx = optax.adam(lr)
     dense_step = jax.jit(lambda g, s, p: tx.update(g, s, p))
     early, late = np.arange(4), np.arange(4, 10)  # rows 10..15 never touched
+    dense_e, dst_e = init[:4], tx.init(init[:4])
+    dense_l, dst_l = init[4:10], tx.init(init[4:10])
+    first_late_step = None
     for step in range(1010):
         touched = early if step < 1000 else np.concatenate([early, late])
         rows = np.concatenate([touched, rng.choice(touched, 6), [-1, -1]]).astype(np.int32)  # duplicates, padding
         g = rng.normal(size=(len(rows), d)).astype(np.float32)
-        table, st = update(table, st, jnp.asarray(rows), jnp.asarray(g), 0.01)
+        before = np.asarray(table)[late]
+        table, st = update(table, st, jnp.asarray(rows), jnp.asarray(g), lr)
+        if step == 1000:
+            first_late_step = np.abs(np.asarray(table)[late] - before)
         gd = np.zeros((r, d), np.float32)
         np.add.at(gd, rows[rows >= 0], g[rows >= 0])
-        u, dst = dense_step(jnp.asarray(gd), dst, dense)
-        dense = optax.apply_updates(dense, u)
-    assert int(st.count) == 1010
-    np.testing.assert_allclose(np.asarray(table)[:10], np.asarray(dense)[:10], rtol=2e-4, atol=2e-5)
+        u, dst_e = dense_step(jnp.asarray(gd[:4]), dst_e, dense_e)
+        dense_e = optax.apply_updates(dense_e, u)
+        if step >= 1000:
+            u, dst_l = dense_step(jnp.asarray(gd[4:10]), dst_l, dense_l)
+            dense_l = optax.apply_updates(dense_l, u)
+    np.testing.assert_array_equal(np.asarray(st.count), [1010] * 4 + [10] * 6 + [0] * 6)
+    np.testing.assert_allclose(np.asarray(table)[:4], np.asarray(dense_e), rtol=2e-4, atol=2e-5)
+    np.testing.assert_allclose(np.asarray(table)[4:10], np.asarray(dense_l), rtol=2e-4, atol=2e-5)
+    assert first_late_step.max() <= lr * 1.001  # a fresh Adam's first step is lr * sign(g)
     np.testing.assert_array_equal(np.asarray(table)[10:], np.asarray(init)[10:])
     np.testing.assert_array_equal(np.asarray(st.moments)[:, 2], 0.0)  # the scratch is clean between steps
 
@@ -232,14 +244,14 @@ def test_hierarchical_sampler_matches_algorithm_1():
     rows = jnp.asarray(rows, jnp.int32)
     st, ids, n, stats = window.update(st, rows, jnp.zeros((m, 3), jnp.int32), jnp.asarray(pts, jnp.float32),
                                       jnp.asarray(lab, jnp.float32), jnp.ones(m, bool), jnp.int32(0),
-                                      jnp.zeros(3, jnp.int32), radius_vox=10, mode="voxel", keyframes=0)
+                                      jnp.zeros(3, jnp.int32), radius_vox=10)
     assert bool(stats.ok) and int(n) == 5
     slot_of = np.asarray(st.slot_of_voxel)
     inside = jnp.zeros(s, bool).at[jnp.asarray(slot_of[[0, 1, 3, 4, 5]])].set(True)  # voxel 2 outside
     inside = inside.at[int(slot_of[2])].set(False)
     ids, n = window.window_slots(inside & (st.count > 0))
     b = hierarchical.sample_hierarchical(jax.random.PRNGKey(0), st, ids, n, nv=4000, np_=9, nt=10)
-    vox_b = np.asarray(st.voxel_of_slot)[np.asarray(b.slots)]
+    vox_b = np.asarray(b.voxel_rows)
     mask, labels = np.asarray(b.mask), np.asarray(b.labels)
     assert set(vox_b.tolist()) == {0, 1, 4, 5}
     for v in (0, 1, 4, 5):
@@ -252,7 +264,7 @@ def test_hierarchical_sampler_matches_algorithm_1():
     freq = np.bincount(vox_b, minlength=s)[[0, 1, 4, 5]] / 4000
     np.testing.assert_allclose(freq, 0.25, atol=0.04)
     u = hierarchical.sample_uniform(jax.random.PRNGKey(1), st, ids, n, batch=20000)
-    share0 = (np.asarray(st.voxel_of_slot)[np.asarray(u.slots)] == 0).mean()
+    share0 = (np.asarray(u.voxel_rows) == 0).mean()
     assert abs(share0 - 30 / 62) < 0.03  # uniform over pairs: voxel 0 holds 30 of the 62 window pairs
 
 
@@ -261,7 +273,7 @@ def test_store_update_keeps_the_newest_p_pairs_per_voxel_like_a_python_ring_buff
     s, p, v = 32, 5, 64
     st = window.create(s, p, v)
     ref = {}
-    upd = jax.jit(functools.partial(window.update, radius_vox=1000, mode="voxel", keyframes=0))
+    upd = jax.jit(functools.partial(window.update, radius_vox=1000))
     for f in range(6):
         m = 60
         rows = rng.integers(-1, 12, size=m).astype(np.int32)
@@ -285,6 +297,55 @@ def test_store_update_keeps_the_newest_p_pairs_per_voxel_like_a_python_ring_buff
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+def _offer(st, upd, voxel, n, frame, key, value0=0.0):
+    """Offer n pairs of one frame to `voxel`; the label of pair i is value0 + i."""
+    vals = value0 + jnp.arange(n, dtype=jnp.float32)
+    return upd(st, jnp.full((n,), voxel, jnp.int32), jnp.zeros((n, 3), jnp.int32), jnp.zeros((n, 3)), vals,
+               jnp.ones(n, bool), jnp.int32(frame), jnp.zeros(3, jnp.int32), True, key)
+
+
+def test_a_voxel_observed_by_k_frames_in_the_window_holds_pairs_from_all_k():
+    """Near the sensor a voxel gets ~30 pairs a frame. With the per-frame quota and the reservoir, a
+    block of 64 holds pairs of all 8 frames that saw it; the newest-64 ring buffer holds 3 of them."""
+    s, p, k = 4, 64, 8
+    held = {}
+    for policy, q in (("reservoir", 8), ("ring", 0)):
+        upd = jax.jit(functools.partial(window.update, radius_vox=1000, policy=policy,
+                                        pairs_per_frame=q))
+        st = window.create(s, p, 8)
+        for f in range(k):
+            st, ids, n, stats = _offer(st, upd, 2, 30, f, jax.random.PRNGKey(f), value0=100.0 * f)
+            assert bool(stats.ok)
+        slot = int(st.slot_of_voxel[2])
+        assert int(st.frames_seen[slot]) == k and int(st.count[slot]) == min(p, k * (q or 30))
+        frames = np.asarray(st.frame[slot, : int(st.count[slot])])
+        held[policy] = len(set(frames.tolist()))
+        assert float(window.frames_held_fraction(st, ids, n, 5)) == held[policy] / k
+    assert held == {"reservoir": k, "ring": 3}
+
+
+def test_reservoir_keeps_each_offered_pair_with_equal_probability():
+    """Algorithm R vectorised per frame (several pairs of one frame may draw one position; the later
+    wins): after 50 pairs offered in 5 frames, each is held with probability P / 50."""
+    p, trials = 8, 300
+    upd = jax.jit(functools.partial(window.update, radius_vox=1000, policy="reservoir"))
+    hits = np.zeros(50)
+    for t in range(trials):
+        st = window.create(2, p, 4)
+        for f in range(5):
+            st, _, _, _ = _offer(st, upd, 1, 10, f, jax.random.PRNGKey(1000 * t + f), value0=10.0 * f)
+        slot = int(st.slot_of_voxel[1])
+        labels = np.asarray(st.pairs[slot, :, 3]).astype(int)
+        assert len(set(labels.tolist())) == p  # no pair held twice
+        hits[labels] += 1
+    freq = hits / trials
+    np.testing.assert_allclose(freq.mean(), p / 50, rtol=1e-6)
+    # binomial std of one item's frequency is ~0.021: every item within 4.5 std of P / 50
+    assert np.all(np.abs(freq - p / 50) < 0.095), freq
+    # the first frame's items are not favoured over the last frame's (a ring would keep none of them)
+    assert abs(freq[:10].mean() - freq[40:].mean()) < 0.04
+
+
 def test_static_config_is_hashable_and_lr_is_not_static():
     a = core.N3Static.from_config(_cfg())
     b = core.N3Static.from_config(_cfg(["train.lr=0.5", "train.sigma_sigmoid_m=0.2", "train.weight_e=0.3"]))
@@ -301,7 +362,7 @@ def test_window_cube_test_is_exact_on_this_backend():
     coord = rng.integers(-300, 300, (s, 3)).astype(np.int32)
     st = st.replace(coord=jnp.asarray(coord), voxel_of_slot=jnp.zeros(s, jnp.int32))
     c = np.array([100, 14, 0], np.int32)
-    got = jax.jit(lambda st, c: window.in_window(st, c, 100, mode="voxel", frame=0, keyframes=0))(st, jnp.asarray(c))
+    got = jax.jit(lambda st, c: window.in_window(st, c, 100))(st, jnp.asarray(c))
     np.testing.assert_array_equal(np.asarray(got), np.all(np.abs(coord - c) <= 100, axis=1))
 
 
@@ -337,3 +398,11 @@ def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
     save_state(str(tmp_path / "e"), e.cfg, e.state, [])
     _, state, _ = load_state(str(tmp_path / "e"))
     same(state, e.state)
+    # and the replay ablation's flat pool of pairs
+    r = N3Mapper(_cfg(["window.mode=replay"]))
+    for pts, pose in _frames(2):
+        r.add_frame(pts, pose)
+    assert int(r.state.pool.n) > 0
+    save_state(str(tmp_path / "r"), r.cfg, r.state, r.timings)
+    _, state, _ = load_state(str(tmp_path / "r"))
+    same(state, r.state)

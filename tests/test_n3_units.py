@@ -114,3 +114,38 @@ def test_analytic_weight_gradients_equal_autodiff():
     jac = jax.vmap(jax.jacfwd(lambda p, v: gf.corner_weights(p[None], v[None], 0.2, 3)[0]))(
         jnp.asarray(pts), jnp.asarray(vox))
     np.testing.assert_allclose(dw, jac, rtol=1e-4, atol=1e-4)
+
+
+def _free_labels_and_truth(pts, nrm, origin, true_dist, mode):
+    n = len(pts)
+    s = sample_frame(jax.random.PRNGKey(1), jnp.asarray(pts, jnp.float32), jnp.asarray(nrm, jnp.float32),
+                     jnp.ones(n, bool), jnp.asarray(origin, jnp.float32), label_mode="normal",
+                     **dict(KW, n_free=8), free_label_mode=mode)
+    free = ~np.asarray(s.surface)
+    return np.asarray(s.labels)[free], true_dist(np.asarray(s.points, np.float64)[free])
+
+
+def test_free_space_labels_never_exceed_the_true_distance_to_a_plane_or_a_sphere():
+    """Free samples a metre before a grazing hit pass centimetres above the ground: their label must
+    not claim the truncation distance. `projected` labels stay <= the true distance to a plane (equal
+    there, up to tr) and to a sphere seen from outside; the paper's flat label exceeds it."""
+    origin = np.array([0.0, 0.0, 1.73])
+    xs = np.linspace(3, 20, 300)
+    ground = np.stack([xs, 0.3 * np.sin(xs), np.zeros_like(xs)], 1)
+    up = np.tile([0.0, 0.0, 1.0], (len(xs), 1))
+    lab, true = _free_labels_and_truth(ground, up, origin, lambda p: p[:, 2], "projected")
+    assert np.all(lab <= true + 1e-5)
+    np.testing.assert_allclose(lab, np.minimum(true, 0.3), atol=1e-4)
+    flat, true_f = _free_labels_and_truth(ground, up, origin, lambda p: p[:, 2], "truncation")
+    assert np.mean(flat > true_f + 0.05) > 0.3  # the flat rule lies by > 5 cm for many samples
+
+    rng = np.random.default_rng(2)
+    v = rng.normal(size=(800, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    sensor = np.array([6.0, 0.0, 0.0])
+    v = v[(v @ sensor) / 6.0 > 0.35]  # the side of a radius-2 sphere that the sensor sees
+    sphere = lambda p: np.linalg.norm(p, axis=1) - 2.0  # noqa: E731
+    lab, true = _free_labels_and_truth(2.0 * v, v, sensor, sphere, "projected")
+    assert np.all(lab <= true + 1e-5) and np.all(lab > 0)
+    flat, true_f = _free_labels_and_truth(2.0 * v, v, sensor, sphere, "truncation")
+    assert np.any(flat > true_f + 0.02)

@@ -28,6 +28,8 @@ import numpy as np
 
 VARIANTS = {
     "jaxmap": [],
+    # the free-space label and pair store before issue 14 (flat +tr free labels, newest-64 ring)
+    "flat_ring": ["sampling.free_label_mode=truncation", "window.block_policy=ring", "window.pairs_per_frame=0"],
     "projective": ["sampling.label_mode=projective"],
     "corrected": ["sampling.label_mode=corrected"],
     "replay": ["window.mode=replay"],
@@ -55,7 +57,7 @@ def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str],
     env = dict(os.environ, JAXMAP_CACHE_DIR=cache_dir)
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # set by this process's `import jaxmap`
     cmd = [sys.executable, "-m", "jaxmap.cli", "map", city_config_path(), "--data", data, "--out", out,
-           "--no-progress"] + [a for o in overrides for a in ("--set", o)]
+           "--no-progress", "--overwrite"] + [a for o in overrides for a in ("--set", o)]
     if not evaluate:
         cmd += ["--no-mesh"]
     t0 = time.perf_counter()
@@ -102,6 +104,10 @@ def main(args) -> int:
 
     if getattr(args, "long", False):
         return main_long(args)
+    if getattr(args, "validation_suite", False):
+        from jaxmap.bench.n3_suite import main_suite
+
+        return main_suite(args, VARIANTS, map_in_subprocess)
     data, out = args.data, args.out
     os.makedirs(out, exist_ok=True)
     if not os.path.isfile(os.path.join(data, "poses.txt")):
@@ -140,6 +146,8 @@ def main(args) -> int:
         json.dump({"speed": speed, "quality": results}, f, indent=1, default=float)
     print()
     print_table(results)
+    print()
+    print_signed_errors(results)
     if "tsdf" in results and "jaxmap" in results:
         a, b = results["jaxmap"]["metrics"], results["tsdf"]["metrics"]
         print(f"\nC-L1 jaxmap / TSDF = {a['chamfer_l1_cm'] / b['chamfer_l1_cm']:.3f}; "
@@ -154,7 +162,8 @@ def _quality_row(s: dict) -> dict:
     return {"metrics": s.get("metrics", {}), "s_per_frame": s["wall_s_per_frame"],
             "median_total_s": s["median_total_s"], "store_flat": flat, "store_growth_ratio": ratio,
             "store_mb_max": max(r["store_bytes"] for r in frames) / 2**20, "max_store_pairs": max(pairs),
-            "peak_rss_mb": s.get("peak_rss_mapping_mb", float("nan"))}
+            "peak_rss_mb": s.get("peak_rss_mapping_mb", float("nan")),
+            "frames_held": s.get("store_frames_held", float("nan"))}
 
 
 def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
@@ -172,7 +181,7 @@ def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
     secs = time.perf_counter() - t0
     m = evaluate_mesh_file(mesh_path, data, threshold_m=cfg0.eval.threshold_m,
                            cull_distance_m=cfg0.eval.cull_distance_m, eval_radius_m=cfg0.eval.eval_radius_m,
-                           n_samples=cfg0.eval.n_samples, **_frame_selection(cfg0))
+                           n_samples=cfg0.eval.n_samples, floor=True, **_frame_selection(cfg0))
     n = info.get("frames", 1) or 1
     return {"metrics": m, "s_per_frame": secs / n, "median_total_s": float("nan"), "store_flat": True,
             "store_mb_max": 0.0, "max_store_pairs": 0, "peak_rss_mb": float("nan")}
@@ -184,15 +193,44 @@ def _print_row(name, r):
           + f", {r['s_per_frame']:.3f} s/frame")
 
 
+def floor_of(results: dict) -> dict:
+    """The protocol floor (GT mesh as the prediction) that the runs' metrics carry, or {}."""
+    for r in results.values():
+        f = r.get("metrics", {}).get("floor")
+        if f:
+            return f
+    return {}
+
+
+def print_signed_errors(results: dict) -> None:
+    """Mean signed surface error per GT class (cm; + = outside / above the true surface), one row per
+    variant, the floor first."""
+    rows = {"floor (GT)": floor_of(results).get("signed_error_cm", {})}
+    rows.update({k: r.get("metrics", {}).get("signed_error_cm", {}) for k, r in results.items()})
+    classes = [c for c in next((v for v in rows.values() if v), {})]
+    if not classes:
+        return
+    _print_head(f"{'signed cm':<11}" + "".join(f"{c[:10]:>11}" for c in classes))
+    for name, se in rows.items():
+        print(f"{name:<11}" + "".join(f"{se.get(c, {}).get('mean_cm', np.nan):>11.2f}" for c in classes))
+
+
 def print_table(results: dict) -> None:
     _print_head(f"{'variant':<11}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
-                f"{'s/frame':>8}{'store MB':>9}{'flat':>6}{'RSS MB':>8}")
+                f"{'s/frame':>8}{'store MB':>9}{'flat':>6}{'RSS MB':>8}{'views':>7}")
+    fl = floor_of(results)
+    if fl:  # the protocol floor: the best any method can score here
+        print(f"{'floor (GT)':<11}{fl['accuracy_cm']:>8.2f}{fl['completion_cm']:>8.2f}{fl['chamfer_l1_cm']:>8.2f}"
+              f"{fl['completion_ratio']:>7.2f}{fl['f_score']:>7.2f}")
     for name, r in results.items():
         m = r.get("metrics", {})
         print(f"{name:<11}{m.get('accuracy_cm', np.nan):>8.2f}{m.get('completion_cm', np.nan):>8.2f}"
               f"{m.get('chamfer_l1_cm', np.nan):>8.2f}{m.get('completion_ratio', np.nan):>7.2f}"
               f"{m.get('f_score', np.nan):>7.2f}{r.get('s_per_frame', np.nan):>8.3f}{r.get('store_mb_max', 0.0):>9.1f}"
-              f"{str(r.get('store_flat', '')):>6}{r.get('peak_rss_mb', np.nan):>8.0f}")
+              f"{str(r.get('store_flat', '')):>6}{r.get('peak_rss_mb', np.nan):>8.0f}"
+              f"{r.get('frames_held', np.nan) or np.nan:>7.2f}")
+    print("views: for the window's voxels seen by >= 10 frames at the end, the median fraction of those frames "
+          "whose pairs the voxel's block still holds")
 
 
 def main_long(args) -> int:

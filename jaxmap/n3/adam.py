@@ -10,9 +10,10 @@ every row each step. `sparse_adam(...)` returns `(init, update)` like `optax.sca
 
 A row that a step touches takes exactly dense Adam's step with the summed gradient of its
 occurrences in the batch; rows it does not touch keep their values *and* moments (that is what
-"lazy" means: dense Adam would still decay their moments and move them). Bias correction uses the
-one step count `count` of the table, as the N3 reference code does within a frame. No `jit` inside:
-callers jit.
+"lazy" means: dense Adam would still decay their moments and move them). Bias correction uses a
+step count *per row* (the steps that touched it): a row first touched at global step 5000 takes the
+steps of a fresh Adam (about lr each), where one global count would scale its first steps by up to
+~6x (the moments start at zero, but 1 - b^t has long reached 1). No `jit` inside: callers jit.
 """
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ import jax.numpy as jnp
 
 
 class SparseAdamState(NamedTuple):
-    count: jax.Array    # [] int32: steps taken (bias correction)
+    count: jax.Array    # [R] int32: steps that touched each row (its bias correction)
     moments: jax.Array  # [R, 3, D] float32: per row (mu, nu, acc); `acc` is zero between steps, the
                         # scratch in which a step sums the gradients of duplicate rows without an
                         # O(R) buffer or a sort. Packed because one gather/scatter of a row's 96
@@ -55,14 +56,14 @@ def sparse_adam(b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> Sparse
 
     def init(table: jax.Array) -> SparseAdamState:
         r, d = table.shape
-        return SparseAdamState(count=jnp.zeros((), jnp.int32), moments=jnp.zeros((r, 3, d), table.dtype))
+        return SparseAdamState(count=jnp.zeros((r,), jnp.int32), moments=jnp.zeros((r, 3, d), table.dtype))
 
     def update(table: jax.Array, state: SparseAdamState, rows: jax.Array, grads: jax.Array, lr,
                active=True) -> tuple[jax.Array, SparseAdamState]:
         """One step on the rows of a batch.
 
         table: [R, D]; rows: [M] int32 (-1 = padding, duplicates allowed); grads: [M, D];
-        lr: [] learning rate; active: [] bool, False makes the step a no-op (count included).
+        lr: [] learning rate; active: [] bool, False makes the step a no-op (counts included).
         Cost O(M D): one scatter-add, gathers of the touched rows, one scatter-set per array.
         Every occurrence of a row computes the same new values, so the scatter-sets are
         deterministic.
@@ -72,15 +73,16 @@ def sparse_adam(b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8) -> Sparse
         moments = state.moments.at[idx, _ACC].add(grads, mode="drop")
         x = moments.at[idx].get(mode="fill", fill_value=0.0)                # [M, 3, D]
         g = x[:, _ACC]                                                      # summed per row
-        count = state.count + jnp.asarray(active, jnp.int32)
-        t = count.astype(jnp.float32)
+        c = state.count.at[idx].get(mode="fill", fill_value=0) + 1          # [M] this step's count
+        t = c.astype(jnp.float32)[:, None]
         mu = b1 * x[:, _MU] + (1.0 - b1) * g
         nu = b2 * x[:, _NU] + (1.0 - b2) * g * g
         step = lr * (mu / (1.0 - b1**t)) / (jnp.sqrt(nu / (1.0 - b2**t)) + eps)
         value = table.at[idx].get(mode="fill", fill_value=0.0) - step
         new = jnp.stack([mu, nu, jnp.zeros_like(mu)], axis=1)
         return (table.at[idx].set(value, mode="drop"),
-                SparseAdamState(count=count, moments=moments.at[idx].set(new, mode="drop")))
+                SparseAdamState(count=state.count.at[idx].set(c, mode="drop"),
+                                moments=moments.at[idx].set(new, mode="drop")))
 
     return SparseAdam(init, update)
 

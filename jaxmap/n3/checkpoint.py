@@ -13,6 +13,8 @@ compact tree to the host (one device->host copy) and writes it in a background t
 goes on while orbax writes; the next save waits for the previous one.
 
 meta.json holds the config, the capacities and the per-frame timings so far; `state/` the tree.
+Each save is a new checkpoint `<frames mapped>/` of the checkpoint directory, checksummed, and the
+last two are kept (`jaxmap.checkpoint`): `load_state` falls back to the older one when the newer is damaged.
 """
 from __future__ import annotations
 
@@ -25,12 +27,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.checkpoint import read_meta, read_tree, save_tree
-from jaxmap.config import MapConfig, from_dict, to_dict
+from jaxmap.checkpoint import load, read_tree, save_tree
+from jaxmap.config import ConfigError, MapConfig, from_dict, to_dict
+from jaxmap.errors import CheckpointError
 from jaxmap.grid import hashing
 from jaxmap.n3 import core
 
-_STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "head", "voxel_of_slot", "coord", "last_frame")
+_STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames_seen", "voxel_of_slot", "coord",
+                       "last_frame")
 
 
 def _rows(x, n: int) -> np.ndarray:
@@ -59,7 +63,7 @@ def compact(state: core.N3State) -> dict:
         "voxel_corner_rows": _rows(state.voxel_corner_rows[:max(nv, 1)], nv),
         "voxels_with_corners": state.voxels_with_corners,
         "feature_table": _rows(state.feature_table[:max(nr, 1)], nr),
-        "feature_count": state.feature_opt.count,
+        "feature_count": _rows(state.feature_opt.count[:max(nr, 1)], nr),   # per-row Adam steps
         "feature_moments": _rows(state.feature_opt.moments[:max(nr, 1)], nr),
         "decoder": state.decoder, "decoder_opt": {"count": d.count, "mu": d.mu, "nu": d.nu},
         "store_slots": _rows(used, len(used)),
@@ -68,6 +72,11 @@ def compact(state: core.N3State) -> dict:
         "window_n": st.window_n, "origin_vox": state.origin_vox, "key": state.key, "frame": state.frame,
         "hyper": {"lr": state.hyper.lr, "beta": state.hyper.beta, "weight_e": state.hyper.weight_e},
     }
+    if state.pool is not None:  # the replay / keyframe ablations: the pool's pairs in use
+        npool = int(state.pool.n)
+        tree["pool"] = {k: _rows(getattr(state.pool, k)[:max(npool, 1)], npool)
+                        for k in ("pairs", "surface", "frame", "voxel_row")}
+        tree["n"]["pool"] = np.int32(npool)
     # Own copies: on the CPU a device array may share its buffer with numpy, and the next frame's
     # donated step overwrites it while a background save is still writing.
     return jax.tree_util.tree_map(np.array, tree)
@@ -104,13 +113,25 @@ def expand(static: core.N3Static, cfg: MapConfig, caps: core.Capacities, c: dict
         voxel_corner_rows=put(state.voxel_corner_rows, c["voxel_corner_rows"], nv),
         voxels_with_corners=jnp.asarray(c["voxels_with_corners"]),
         feature_table=put(state.feature_table, c["feature_table"], nr),
-        feature_opt=state.feature_opt._replace(count=jnp.asarray(c["feature_count"]),
+        feature_opt=state.feature_opt._replace(count=put(state.feature_opt.count, c["feature_count"], nr),
                                                moments=put(state.feature_opt.moments, c["feature_moments"], nr)),
         decoder=as_j(c["decoder"]),
         decoder_opt=optax.ScaleByAdamState(count=jnp.asarray(d["count"]), mu=as_j(d["mu"]), nu=as_j(d["nu"])),
-        store=store, origin_vox=jnp.asarray(c["origin_vox"]), key=jnp.asarray(c["key"]),
+        store=store, pool=_expand_pool(state.pool, c), origin_vox=jnp.asarray(c["origin_vox"]),
+        key=jnp.asarray(c["key"]),
         frame=jnp.asarray(c["frame"]), hyper=core.Hyper(**as_j(c["hyper"])),
     )
+
+
+def _expand_pool(empty, c: dict):
+    """The pool of a replay / keyframe checkpoint back at its saved capacity (None when not used)."""
+    if empty is None:
+        return None
+    n = int(c["n"].get("pool", 0)) if "pool" in c else 0
+    if n == 0:
+        return empty
+    return empty.replace(**{k: getattr(empty, k).at[:n].set(jnp.asarray(c["pool"][k][:n]))
+                            for k in ("pairs", "surface", "frame", "voxel_row")}, n=jnp.int32(n))
 
 
 def _meta(cfg: MapConfig, state: core.N3State, timings: list) -> dict:
@@ -119,9 +140,9 @@ def _meta(cfg: MapConfig, state: core.N3State, timings: list) -> dict:
 
 
 def save_state(path: str, cfg: MapConfig, state: core.N3State, timings: list) -> None:
-    """Write the map to directory `path` atomically (replacing an older checkpoint there)."""
+    """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are kept)."""
     wait_for_saves()
-    save_tree(path, compact(state), _meta(cfg, state, timings))
+    save_tree(path, compact(state), _meta(cfg, state, timings), step=int(state.frame))
 
 
 _PENDING: list = []  # the one background save in flight: [thread, error or None]
@@ -136,7 +157,7 @@ def save_state_async(path: str, cfg: MapConfig, state: core.N3State, timings: li
 
     def work():
         try:
-            save_tree(path, tree, meta)
+            save_tree(path, tree, meta, step=meta["frame"])
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
             slot[1] = e
 
@@ -161,10 +182,21 @@ def wait_for_saves() -> None:
 
 
 def load_state(path: str) -> tuple[MapConfig, core.N3State, list]:
-    """(config, state, timings) of a checkpoint written by `save_state`."""
+    """(config, state, timings) of the newest intact checkpoint in directory `path` (see `save_state`;
+    `path` may also name one checkpoint `path/<step>`). Falls back to the older checkpoint with a
+    warning when the newer is damaged; `jaxmap.errors.CheckpointError` when none is usable,
+    `NoCheckpointError` when there is none."""
     wait_for_saves()
-    path, meta = read_meta(path, "N3 map")
-    cfg = from_dict(MapConfig, meta["config"], source=os.path.join(path, "meta.json"))
+    return load(path, _build, "N3 map")
+
+
+def _build(ckpt: str, meta: dict) -> tuple[MapConfig, core.N3State, list]:
+    """(config, state, timings) of one verified checkpoint directory; CheckpointError when unusable."""
+    where = os.path.join(ckpt, "meta.json")
+    try:
+        cfg = from_dict(MapConfig, meta["config"], source=where)
+        caps = core.Capacities(**meta["capacity"])
+    except (KeyError, TypeError, ConfigError) as e:
+        raise CheckpointError(f"{where}: not an N3 map checkpoint ({type(e).__name__}: {e})") from None
     static = core.N3Static.from_config(cfg)
-    caps = core.Capacities(**meta["capacity"])
-    return cfg, expand(static, cfg, caps, read_tree(path)), list(meta.get("timings", []))
+    return cfg, expand(static, cfg, caps, read_tree(ckpt)), list(meta.get("timings", []))

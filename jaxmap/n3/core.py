@@ -39,7 +39,7 @@ import optax
 
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
-from jaxmap.n3 import adam, hierarchical, window
+from jaxmap.n3 import adam, hierarchical, pool, window
 from jaxmap.n3.decoder import init_decoder
 from jaxmap.n3.field import mlp, n3_loss
 from jaxmap.n3.loss import sdf_and_grad
@@ -65,6 +65,7 @@ class N3Static:
     n_free: int
     free_band: float
     free_label: float
+    free_label_mode: str
     iters: int
     hierarchical: bool
     nv: int
@@ -75,6 +76,8 @@ class N3Static:
     reset_adam: bool
     window_mode: str
     keyframes: int
+    block_policy: str
+    pairs_per_frame: int
     radius_vox: int             # window half-width in leaf voxels (the crop radius)
     max_load: float
     mask_level: int
@@ -92,9 +95,11 @@ class N3Static:
             hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
             sigma=s.sigma_m, n_surface=s.surface_sample_n, n_free=s.free_sample_n, free_band=s.free_band_m,
             free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
+            free_label_mode=s.free_label_mode,
             iters=t.iters, hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
             batch_size=t.batch_size, freeze_after_frame=t.freeze_after_frame, reset_adam=t.reset_adam_each_frame,
             window_mode=w.mode, keyframes=w.keyframes if w.mode == "keyframe" else 0,
+            block_policy=w.block_policy, pairs_per_frame=w.pairs_per_frame,
             radius_vox=int(math.ceil(cfg.preprocess.max_range_m / leaf)), max_load=g.max_load,
             mask_level=m.mask_level, min_leaf_corners=m.min_leaf_corners,
         )
@@ -102,6 +107,11 @@ class N3Static:
     @property
     def corners_per_voxel(self) -> int:
         return self.levels * 8
+
+    @property
+    def uses_pool(self) -> bool:
+        """The replay / keyframe ablations keep a flat pool of pairs instead of per-voxel blocks."""
+        return self.window_mode in ("replay", "keyframe")
 
 
 @flax.struct.dataclass
@@ -123,6 +133,7 @@ class N3State:
     decoder: dict                          # flax params of the SDF decoder
     decoder_opt: optax.ScaleByAdamState    # Adam moments of the decoder
     store: window.PairStore                # voxel-oriented training pairs and the current window
+    pool: pool.PairPool | None             # flat pool of pairs (replay / keyframe ablations), else None
     origin_vox: jax.Array                  # [3] int32: map origin in leaf voxels (world = map + origin)
     key: jax.Array                         # PRNG key, split once per frame
     frame: jax.Array                       # [] int32 frames integrated and trained so far
@@ -173,11 +184,13 @@ class Capacities:
     feature_rows: int    # R
     store_blocks: int    # S
     pairs_per_block: int # P
+    pool_pairs: int = 0  # pairs of the flat pool (replay / keyframe ablations; 0 = none)
 
     @classmethod
     def of(cls, state: N3State) -> "Capacities":
         return cls(state.voxels.capacity, state.voxel_coord.shape[0], state.corners.capacity,
-                   state.feature_table.shape[0], state.store.n_slots, state.store.block_size)
+                   state.feature_table.shape[0], state.store.n_slots, state.store.block_size,
+                   state.pool.capacity if state.pool is not None else 0)
 
 
 def pow2(n: int) -> int:
@@ -202,9 +215,13 @@ def capacities_for(static: N3Static, cfg) -> Capacities:
     blocks = max(_round_up(1.5 * window_voxels), pow2(cfg.window.initial_blocks))
     voxels = _round_up(4 * window_voxels + 2 * static.new_voxels_per_pass)
     rows = _round_up(2.5 * voxels)
+    pool_pairs = 0
+    if static.uses_pool:  # the ablations: no blocks; the pool starts at ~16 frames' worth (a scan
+        # brings about one point per window voxel) and doubles when full
+        blocks, pool_pairs = 16, _round_up(16 * window_voxels * (static.n_surface + static.n_free))
     return Capacities(voxel_slots=pow2(voxels / static.max_load), voxel_rows=voxels,
                       corner_slots=pow2(rows / static.max_load), feature_rows=rows,
-                      store_blocks=blocks, pairs_per_block=cfg.window.pairs_per_voxel)
+                      store_blocks=blocks, pairs_per_block=cfg.window.pairs_per_voxel, pool_pairs=pool_pairs)
 
 
 FEATURE_INIT_BLOCK = 1 << 16
@@ -247,6 +264,7 @@ def init_state(static: N3Static, cfg, caps: Capacities) -> N3State:
         decoder=dec,
         decoder_opt=optax.scale_by_adam().init(dec),
         store=window.create(caps.store_blocks, caps.pairs_per_block, caps.voxel_rows),
+        pool=pool.create(caps.pool_pairs) if static.uses_pool else None,
         origin_vox=jnp.zeros((3,), jnp.int32),
         key=jax.random.PRNGKey(t.seed),
         frame=jnp.zeros((), jnp.int32),
@@ -277,7 +295,8 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
     ns, nf = static.n_surface, static.n_free
     samples = sample_frame(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
                            trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=nf,
-                           free_band=static.free_band, free_label=static.free_label)
+                           free_band=static.free_band, free_label=static.free_label,
+                           free_label_mode=static.free_label_mode)
     vox = gfeat.leaf_voxel(samples.points, static.leaf)                           # [N*(ns+nf), 3]
     vkeys = jnp.concatenate([vox, jnp.zeros_like(vox[:, :1])], -1).reshape(n, ns + nf, 4)
     valid = samples.valid.reshape(n, ns + nf)
@@ -315,9 +334,14 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
                             jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
     allowed = ~v_over & ~c_over & (pending == 0)
     center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
+    if static.uses_pool:
+        return _integrate_pool(static, state, samples, rows, allowed, voxels, corners, voxel_coord,
+                               voxel_corner_rows, done, pending, v_over, c_over, n_new_v, n_new_c,
+                               jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32))
     store, ids, n_win, sst = window.update(
         state.store, rows, vox, samples.points, samples.labels, samples.surface, state.frame, center, allowed,
-        radius_vox=static.radius_vox, mode=static.window_mode, keyframes=static.keyframes)
+        jax.random.fold_in(key, 1), radius_vox=static.radius_vox, policy=static.block_policy,
+        pairs_per_frame=static.pairs_per_frame)
     store = store.replace(window_ids=jnp.where(sst.ok, ids, state.store.window_ids),
                           window_n=jnp.where(sst.ok, n_win, state.store.window_n))
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
@@ -329,6 +353,22 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         window_blocks=store.window_n, store_pairs=window.total_pairs(store),
         free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
     )
+    return state, stats
+
+
+def _integrate_pool(static, state, samples, rows, allowed, voxels, corners, voxel_coord, voxel_corner_rows, done,
+                    pending, v_over, c_over, n_new_v, n_new_c, free_dropped):
+    """The replay / keyframe ablations: the frame's pairs go to the flat pool, not to blocks."""
+    new_pool, pst = pool.update(state.pool, rows, samples.points, samples.labels, samples.surface, state.frame,
+                                allowed, keyframes=static.keyframes)
+    state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
+                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, pool=new_pool)
+    zero = jnp.zeros((), jnp.int32)
+    stats = FrameStats(
+        ok=pst.ok, voxel_overflow=v_over, corner_overflow=c_over, store_overflow=allowed & ~pst.ok,
+        pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
+        new_feature_rows=n_new_c, blocks_needed=pst.needed, blocks_free=zero, window_blocks=zero,
+        store_pairs=new_pool.n, free_dropped=free_dropped)
     return state, stats
 
 
@@ -366,20 +406,19 @@ def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, 
 
         return jax.lax.cond(train_decoder, lambda a: grad_both(*a), feats_only, args)
 
-    frame = state.frame
-
     def body(_, carry):
         table, f_opt, dec, d_opt, key, acc = carry
         key, k = jax.random.split(key)
-        if static.hierarchical:
+        if static.uses_pool:
+            b = hierarchical.sample_pool(k, state.pool, state.voxel_coord, batch=static.batch_size)
+        elif static.hierarchical:
             b = hierarchical.sample_hierarchical(k, store, ids, n, nv=static.nv, np_=static.np_per_voxel,
-                                                 nt=static.nt, frame=frame, keyframes=static.keyframes)
+                                                 nt=static.nt)
         else:
-            b = hierarchical.sample_uniform(k, store, ids, n, batch=static.batch_size, frame=frame,
-                                            keyframes=static.keyframes)
-        rows = state.voxel_corner_rows[jnp.maximum(store.voxel_of_slot[b.slots], 0)]    # [G, L*8]
+            b = hierarchical.sample_uniform(k, store, ids, n, batch=static.batch_size)
+        rows = state.voxel_corner_rows[jnp.maximum(b.voxel_rows, 0)]                     # [G, L*8]
         feats = table[jnp.maximum(rows, 0)]                                              # [G, L*8, D]
-        (loss, (l_bce, l_eik)), (g_feat, g_dec) = loss_grad(feats, dec, b, store.coord[b.slots], h.beta,
+        (loss, (l_bce, l_eik)), (g_feat, g_dec) = loss_grad(feats, dec, b, b.coords, h.beta,
                                                              h.weight_e)
         table, f_opt = opt.update(table, f_opt, rows.reshape(-1), g_feat.reshape(-1, table.shape[-1]), h.lr)
         upd, d_opt_new = dec_tx.update(g_dec, d_opt, dec)
@@ -467,6 +506,15 @@ def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, fea
         r_rows *= 2
     v_slots = max(caps.voxel_slots, pow2(v_rows / static.max_load))
     c_slots = max(caps.corner_slots, pow2(r_rows / static.max_load))
+    if static.uses_pool:
+        need = int(stats.blocks_needed) + 2 * max(int(stats.blocks_needed) - int(stats.store_pairs), 0)
+        cap = caps.pool_pairs
+        while need > cap:
+            cap *= 2
+        if cap != caps.pool_pairs:
+            log.info("growing the pair pool %d -> %d pairs", caps.pool_pairs, cap)
+            state = state.replace(pool=pool.grow(state.pool, cap))
+        return state
     blocks = caps.store_blocks
     used = caps.store_blocks - int(stats.blocks_free) + int(stats.blocks_needed)
     b_need = used + headroom.get("blocks", 0)
@@ -487,7 +535,7 @@ def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, fea
         state = state.replace(
             corners=hashing.grow(state.corners, c_slots) if c_slots != caps.corner_slots else state.corners,
             feature_table=jnp.concatenate([state.feature_table, extra]),
-            feature_opt=o._replace(moments=_pad_rows(o.moments, r_rows, 0.0)),
+            feature_opt=o._replace(count=_pad_rows(o.count, r_rows, 0), moments=_pad_rows(o.moments, r_rows, 0.0)),
         )
     if blocks != caps.store_blocks:
         log.info("growing the pair store %d -> %d blocks", caps.store_blocks, blocks)
@@ -501,8 +549,11 @@ def _pad_rows(x: jax.Array, n: int, fill) -> jax.Array:
     return jnp.concatenate([x, jnp.full((n - x.shape[0],) + x.shape[1:], fill, x.dtype)])
 
 
-def store_bytes(store: window.PairStore) -> int:
-    """Bytes of the pair store's arrays (the sliding window's memory)."""
+frames_held_jit = jax.jit(window.frames_held_fraction, static_argnums=3)
+
+
+def store_bytes(store) -> int:
+    """Bytes of the arrays of a pair store or pool (the training pairs' memory)."""
     return int(sum(np.prod(x.shape) * x.dtype.itemsize for x in jax.tree_util.tree_leaves(store)))
 
 
@@ -524,7 +575,7 @@ def compiled_step(static: N3Static, state: N3State, batch: ScanBatch):
 
         est = compile_cache.estimate("n3_step")
         log.info("compiling the mapper (one time for these table sizes%s)",
-                 f", up to about {est:.0f} s" if est else "")
+                 f", up to about {est:.0f} s" if est else ", usually 5-30 s the first time on a machine")
         t0 = time.perf_counter()
         fn = step.lower(static, state, batch).compile()
         secs = time.perf_counter() - t0

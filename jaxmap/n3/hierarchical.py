@@ -1,4 +1,5 @@
-"""Batch selection from the pair store: hierarchical (N3 Algorithm 1) or uniform over pairs.
+"""Batch selection from the pair store: hierarchical (N3 Algorithm 1) or uniform over pairs (and
+uniform over a flat pool of pairs for the replay / keyframe ablations).
 
 Both return pairs grouped as `[G, K]`: all K pairs of a group come from one block, i.e. one leaf
 voxel, so they share the voxel's 24 corner rows and the feature gather happens once per group.
@@ -18,18 +19,12 @@ from jaxmap.n3.window import PairStore
 
 
 class Batch(NamedTuple):
-    slots: jax.Array    # [G] int32: block of each group
+    voxel_rows: jax.Array  # [G] int32: leaf-voxel row of each group (its corner features)
+    coords: jax.Array      # [G, 3] int32: that voxel's leaf coordinate
     points: jax.Array   # [G, K, 3] float32, map frame
     labels: jax.Array   # [G, K] float32
     surface: jax.Array  # [G, K] bool
     mask: jax.Array     # [G, K] bool: pair counts in the loss
-
-
-def _pair_mask(store: PairStore, slots, j, frame, keyframes):
-    """Pairs written in the last `keyframes` frames only (keyframe ablation); keyframes<=0: all."""
-    if keyframes <= 0:
-        return jnp.ones(j.shape, bool)
-    return store.frame[slots[:, None], j] > frame - keyframes
 
 
 def draw_block_pairs(u, count, *, nt: int, block_size: int):
@@ -46,8 +41,7 @@ def draw_block_pairs(u, count, *, nt: int, block_size: int):
     return j, take
 
 
-def sample_hierarchical(key, store: PairStore, ids, n, *, nv: int, np_: int, nt: int,
-                        frame=0, keyframes: int = 0) -> Batch:
+def sample_hierarchical(key, store: PairStore, ids, n, *, nv: int, np_: int, nt: int) -> Batch:
     """Stage 1: Nv blocks uniformly (with replacement) among the n window blocks `ids[:n]`.
     Stage 2: `draw_block_pairs` per block under `vmap` (its uniforms drawn in one [Nv, Np] call)."""
     kv, kp = jax.random.split(key)
@@ -56,12 +50,12 @@ def sample_hierarchical(key, store: PairStore, ids, n, *, nv: int, np_: int, nt:
     draw = functools.partial(draw_block_pairs, nt=nt, block_size=store.block_size)
     j, mask = jax.vmap(draw)(jax.random.uniform(kp, (nv, np_)), store.count[slots])   # [Nv, Np] each
     mask &= (n > 0)
-    mask &= _pair_mask(store, slots, j, frame, keyframes)
     rows = store.pairs[slots[:, None], j]                                # [Nv, Np, 4]
-    return Batch(slots, rows[..., :3], rows[..., 3], store.surface[slots[:, None], j], mask)
+    return Batch(store.voxel_of_slot[slots], store.coord[slots], rows[..., :3], rows[..., 3],
+                 store.surface[slots[:, None], j], mask)
 
 
-def sample_uniform(key, store: PairStore, ids, n, *, batch: int, frame=0, keyframes: int = 0) -> Batch:
+def sample_uniform(key, store: PairStore, ids, n, *, batch: int) -> Batch:
     """`batch` pairs uniformly over all pairs in the window blocks `ids[:n]` (ablation)."""
     s = ids.shape[0]
     counts = jnp.where(jnp.arange(s) < n, store.count[ids], 0)
@@ -73,7 +67,19 @@ def sample_uniform(key, store: PairStore, ids, n, *, batch: int, frame=0, keyfra
     slots = ids[w]
     j = (u - (cum[w] - counts[w]))[:, None].astype(jnp.int32)          # [B,1]
     j = jnp.clip(j, 0, store.block_size - 1)
-    mask = (total > 0) & _pair_mask(store, slots, j, frame, keyframes)
-    mask = jnp.broadcast_to(mask, (batch, 1))
+    mask = jnp.broadcast_to(total > 0, (batch, 1))
     rows = store.pairs[slots[:, None], j]
-    return Batch(slots, rows[..., :3], rows[..., 3], store.surface[slots[:, None], j], mask)
+    return Batch(store.voxel_of_slot[slots], store.coord[slots], rows[..., :3], rows[..., 3],
+                 store.surface[slots[:, None], j], mask)
+
+
+def sample_pool(key, pool, voxel_coord, *, batch: int) -> Batch:
+    """`batch` pairs uniformly from all pairs of a `pool.PairPool` (the replay / keyframe ablations);
+    voxel_coord: [V, 3] int32 leaf coordinate of each voxel row."""
+    from jaxmap.n3 import pool as pool_mod
+
+    i, mask = pool_mod.sample(key, pool, batch=batch)
+    v = pool.voxel_row[i]
+    rows = pool.pairs[i][:, None]                                         # [B, 1, 4]
+    return Batch(v, voxel_coord[jnp.maximum(v, 0)], rows[..., :3], rows[..., 3], pool.surface[i][:, None],
+                 mask[:, None] & (v >= 0)[:, None])

@@ -51,13 +51,23 @@ class N3Mapper:
         info = {"frame": self.frames, "points": len(pts), "preprocess_s": t1 - t0, "map_s": t2 - t1,
                 "total_s": t2 - t0, "passes": passes, "loss": float(ts.loss), "bce": float(ts.bce),
                 "eikonal": float(ts.eikonal), "window_voxels": int(fs.window_blocks),
-                "store_pairs": int(fs.store_pairs), "store_bytes": core.store_bytes(self.state.store),
+                "store_pairs": int(fs.store_pairs),
+                "store_bytes": core.store_bytes(self.state.pool if self.static.uses_pool else self.state.store),
                 "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
                 "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
                 "free_dropped": int(fs.free_dropped)}
         self.frames += 1
         self.timings.append(info)
         return info
+
+    def frames_held(self, min_frames: int = 10) -> float:
+        """Median over the window's voxels observed by >= min_frames frames (since they entered the
+        window) of the fraction of those frames whose pairs the voxel's block still holds (1.0: every
+        viewpoint kept; `window.frames_held_fraction`). NaN for the pool ablations (no blocks)."""
+        if self.static.uses_pool:
+            return float("nan")
+        st = self.state.store
+        return float(core.frames_held_jit(st, st.window_ids, st.window_n, min_frames))
 
     @property
     def origin(self) -> np.ndarray:

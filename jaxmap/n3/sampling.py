@@ -9,7 +9,13 @@ ray direction sensor -> p. Signs: the SDF is positive in front of the surface (t
 
 Free-space samples lie on the ray between the sensor and the truncation band, in the last
 `free_band_m` metres before it (samples far from every surface land in voxels without features and
-carry no feature gradient); their label is the truncation distance.
+carry no feature gradient). Their label (`sampling.free_label_mode`):
+  projected   min(tr, (|p - o| - t) |r . n|): the sample's distance to the tangent plane of its own
+              hit point. Exact on planes and never above the true distance to a convex surface seen
+              from outside; at grazing angles (a ray a metre before the road passes centimetres above
+              it) it is centimetres, where a flat label would claim tr.                      [default]
+  truncation  tr (or `free_label_m`) for every free sample, the paper's rule (ablation): it lies about
+              free samples near grazing surfaces and pushes the road and sidewalks down.
 """
 from __future__ import annotations
 
@@ -19,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 LABEL_MODES = ("normal", "projective", "corrected")
+FREE_LABEL_MODES = ("projected", "truncation")
 
 
 class Samples(NamedTuple):
@@ -31,7 +38,8 @@ class Samples(NamedTuple):
 
 
 def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, trunc: float, sigma: float,
-                 n_surface: int, n_free: int, free_band: float, free_label: float) -> Samples:
+                 n_surface: int, n_free: int, free_band: float, free_label: float,
+                 free_label_mode: str = "projected") -> Samples:
     """Sample training pairs for one frame (jit-able; everything after `origin_m` is static).
 
     points_m: [N,3] float32 map frame; normals_m: [N,3] unit, oriented towards the sensor;
@@ -39,6 +47,8 @@ def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, 
     """
     if label_mode not in LABEL_MODES:
         raise ValueError(f"sampling.label_mode must be one of {LABEL_MODES}, got {label_mode!r}")
+    if free_label_mode not in FREE_LABEL_MODES:
+        raise ValueError(f"sampling.free_label_mode must be one of {FREE_LABEL_MODES}, got {free_label_mode!r}")
     k_surf, k_free = jax.random.split(key)
     n = points_m.shape[0]
     ray = points_m - origin_m
@@ -62,6 +72,9 @@ def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, 
     t = near + u * (far - near)                                # [N,nf]
     xf = origin_m + t[..., None] * r[:, None]
     lf = jnp.full((n, n_free), free_label, jnp.float32)
+    if free_label_mode == "projected":
+        cos = jnp.abs(jnp.sum(r * normals_m, axis=-1, keepdims=True))            # [N,1]
+        lf = jnp.minimum(lf, (dist - t) * cos)
 
     pts = jnp.concatenate([xs, xf], axis=1).reshape(-1, 3)
     labels = jnp.concatenate([ls, lf], axis=1).reshape(-1)

@@ -1,13 +1,20 @@
 """Voxel-oriented training-pair store and its sliding window (N3 paper, section III-C1).
 
-Each leaf voxel that holds training pairs owns one *block*: a ring buffer of `P` pairs (oldest
-overwritten, counts kept), so a voxel keeps supervision from every viewpoint that saw it. Blocks
-live in `S` fixed slots; a voxel row (dense id from the voxel hash table) maps to its slot.
-The window is the cube of voxels within `radius` of the current sensor; blocks that leave it are
-released, so memory is bounded by the window, not by the sequence length.
+Each leaf voxel that holds training pairs owns one *block* of `P` pairs. Blocks live in `S` fixed
+slots; a voxel row (dense id from the voxel hash table) maps to its slot. The window is the cube of
+voxels within `radius` of the current sensor; blocks that leave it are released, so memory is
+bounded by the window, not by the sequence length.
 
-Ablations (`window.mode`): `replay` never releases (all past frames stay), `keyframe` keeps only
-pairs of the last N frames.
+What a block keeps (`window.block_policy`), so that a voxel is supervised from the viewpoints that
+saw it while it was in the window (the point of the voxel-oriented window):
+  reservoir  a uniform sample of all the pairs the voxel received since it entered the window
+             (Algorithm R, vectorised per frame), each frame offering at most `pairs_per_frame`
+             pairs, evenly spread over the frame's pairs in that voxel. Near the sensor a voxel gets
+             15-38 pairs a frame; a ring buffer of 64 would hold only the last 2-4 of the ~40
+             frames that see it.                                                      [default]
+  ring       the newest P pairs (oldest overwritten); the pre-reservoir store (ablation).
+
+The paper's data-replay ablations (`window.mode` replay / keyframe) do not use blocks: see `pool`.
 """
 from __future__ import annotations
 
@@ -19,7 +26,7 @@ import jax.numpy as jnp
 
 from jaxmap.grid.hashing import nonzero_fixed, prefix_sum
 
-WINDOW_MODES = ("voxel", "replay", "keyframe")
+BLOCK_POLICIES = ("reservoir", "ring")
 
 
 @flax.struct.dataclass
@@ -28,7 +35,9 @@ class PairStore:
     surface: jax.Array        # [S, P] bool: pair lies in the truncation band (eikonal term)
     frame: jax.Array          # [S, P] int32: frame that produced the pair (-1 = never written)
     count: jax.Array          # [S] int32: valid pairs in the block (<= P)
-    head: jax.Array           # [S] int32: next ring-buffer write position
+    received: jax.Array       # [S] int32: pairs offered to the block since it was assigned (after the
+                              #   per-frame quota); the ring's write position is `received % P`
+    frames_seen: jax.Array    # [S] int32: frames that offered pairs to the block since it was assigned
     voxel_of_slot: jax.Array  # [S] int32: voxel row owning the slot, -1 = free
     coord: jax.Array          # [S, 3] int32: leaf-voxel coordinate of the block
     last_frame: jax.Array     # [S] int32: last frame that wrote into the block
@@ -52,7 +61,8 @@ def create(n_slots: int, pairs_per_voxel: int, n_voxel_rows: int) -> PairStore:
         surface=jnp.zeros((s, p), bool),
         frame=jnp.full((s, p), -1, jnp.int32),
         count=jnp.zeros((s,), jnp.int32),
-        head=jnp.zeros((s,), jnp.int32),
+        received=jnp.zeros((s,), jnp.int32),
+        frames_seen=jnp.zeros((s,), jnp.int32),
         voxel_of_slot=jnp.full((s,), -1, jnp.int32),
         coord=jnp.zeros((s, 3), jnp.int32),
         last_frame=jnp.full((s,), -1, jnp.int32),
@@ -74,29 +84,22 @@ def grow(store: PairStore, n_slots: int | None = None, n_voxel_rows: int | None 
     return fresh.replace(
         pairs=put(fresh.pairs, store.pairs), surface=put(fresh.surface, store.surface),
         frame=put(fresh.frame, store.frame), count=put(fresh.count, store.count),
-        head=put(fresh.head, store.head), voxel_of_slot=put(fresh.voxel_of_slot, store.voxel_of_slot),
+        received=put(fresh.received, store.received), frames_seen=put(fresh.frames_seen, store.frames_seen),
+        voxel_of_slot=put(fresh.voxel_of_slot, store.voxel_of_slot),
         coord=put(fresh.coord, store.coord), last_frame=put(fresh.last_frame, store.last_frame),
         slot_of_voxel=put(fresh.slot_of_voxel, store.slot_of_voxel),
         window_ids=put(fresh.window_ids, store.window_ids), window_n=store.window_n,
     ) if (s_new, v_new) != (s_old, v_old) else store
 
 
-def in_window(store: PairStore, center_vox, radius_vox: int, *, mode: str, frame, keyframes: int):
-    """[S] bool: slots inside the current window (and in use)."""
-    used = store.voxel_of_slot >= 0
-    if mode == "voxel":
-        # A range test, not |coord - center| <= r: XLA's GPU backend (jax 0.11.2, H100) miscompiles
-        # `all(abs(int32 difference) <= r, axis=-1)` on large arrays (15 % of random rows wrong;
-        # tests/test_n3_core.py checks this formulation against numpy on whatever backend runs it).
-        lo, hi = center_vox - radius_vox, center_vox + radius_vox
-        inside = jnp.all((store.coord >= lo) & (store.coord <= hi), axis=-1)
-    elif mode == "replay":
-        inside = jnp.ones_like(used)
-    elif mode == "keyframe":
-        inside = store.last_frame > frame - keyframes
-    else:
-        raise ValueError(f"window.mode must be one of {WINDOW_MODES}, got {mode!r}")
-    return used & inside
+def in_window(store: PairStore, center_vox, radius_vox: int):
+    """[S] bool: slots in use inside the window, the cube of half-width radius_vox around center_vox."""
+    # A range test, not |coord - center| <= r: XLA's GPU backend (jax 0.11.2, H100) miscompiles
+    # `all(abs(int32 difference) <= r, axis=-1)` on large arrays (15 % of random rows wrong;
+    # tests/test_n3_core.py checks this formulation against numpy on whatever backend runs it).
+    lo, hi = center_vox - radius_vox, center_vox + radius_vox
+    inside = jnp.all((store.coord >= lo) & (store.coord <= hi), axis=-1)
+    return (store.voxel_of_slot >= 0) & inside
 
 
 class StoreStats(NamedTuple):
@@ -150,8 +153,9 @@ def ranks_within_slot(slots, n_slots: int):
     return rank, hist.sum(0)[:n_slots]
 
 
-def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame, center_vox, allowed=True, *,
-           radius_vox: int, mode: str, keyframes: int):
+def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame, center_vox, allowed=True,
+           key=None, *, radius_vox: int, policy: str = "ring",
+           pairs_per_frame: int = 0):
     """Slide the window, give a block to every voxel of the batch that has none, append the pairs.
 
     voxel_rows: [M] int32 voxel row of each pair (-1 = drop the pair); coords: [M, 3] int32 leaf-voxel
@@ -160,8 +164,11 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
 
     All or nothing: if more voxels need a block than there are free blocks after the slide, or
     `allowed` is False, the store comes back unchanged with `ok = False` (the caller grows the store
-    outside jit and retries; no pair is ever dropped for capacity). A block keeps the newest P pairs
-    its voxel received (oldest overwritten; within a frame, later pairs of the batch are newer).
+    outside jit and retries; no pair is ever dropped for capacity). What a block keeps is `policy`
+    (module docstring): "ring", the newest P pairs (within a frame, later pairs of the batch are
+    newer); "reservoir", a uniform sample of the pairs offered (key: PRNG key of the draws).
+    pairs_per_frame > 0: a voxel is offered at most that many of a frame's pairs (evenly spaced in
+    batch order); 0 = all.
 
     Returns (store, ids [S] int32, n [] int32: the window blocks that hold pairs, `ids[:n]`, StoreStats).
     """
@@ -170,7 +177,7 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     m = voxel_rows.shape[0]
     idx = jnp.arange(m, dtype=jnp.int32)
 
-    keep = in_window(store, center_vox, radius_vox, mode=mode, frame=frame, keyframes=keyframes)
+    keep = in_window(store, center_vox, radius_vox)
     released = (store.voxel_of_slot >= 0) & ~keep                              # [S]
     free = (store.voxel_of_slot < 0) | released                                # [S] once slid
 
@@ -190,10 +197,11 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     slot_of_voxel = store.slot_of_voxel.at[jnp.where(drop, store.voxel_of_slot, v)].set(-1, mode="drop")
     voxel_of_slot = jnp.where(drop, -1, store.voxel_of_slot)
     count = jnp.where(drop, 0, store.count)
-    head = jnp.where(drop, 0, store.head)
+    received = jnp.where(drop, 0, store.received)
+    frames_seen = jnp.where(drop, 0, store.frames_seen)
     last_frame = jnp.where(drop, -1, store.last_frame)
-    # Assign: voxels needing a block take the free blocks in order of voxel row (the order of the
-    # pre-refactor store, so runs reproduce it to float rounding; tested in test_n3_mapping).
+    # Assign: voxels needing a block take the free blocks in order of voxel row (deterministic, and
+    # the order of the pre-refactor store).
     k = min(m, s)
     free_list = nonzero_fixed(free, k, s)                                       # [k]
     needv = jnp.zeros((v + 1,), jnp.int32).at[row].max(need.astype(jnp.int32))[:v]
@@ -205,23 +213,50 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     voxel_of_slot = voxel_of_slot.at[tgt_slot].set(voxel_rows, mode="drop")
     coord = store.coord.at[tgt_slot].set(coords, mode="drop")
     count = count.at[tgt_slot].set(0, mode="drop")
-    head = head.at[tgt_slot].set(0, mode="drop")
-    # Append: the r-th of n pairs of a block goes to position head + r; the newest P survive.
+    received = received.at[tgt_slot].set(0, mode="drop")
+    frames_seen = frames_seen.at[tgt_slot].set(0, mode="drop")
     slot = jnp.where(real & ok, slot_of_voxel[jnp.minimum(row, v - 1)], s)    # [M] s: skip
     rank, n_in = ranks_within_slot(slot, s)
     ss = jnp.minimum(slot, s - 1)
-    tgt = jnp.where((slot < s) & (rank >= n_in[ss] - p), slot, s)
-    pos = (head[ss] + rank) % p
+    q = pairs_per_frame
+    if q > 0:
+        # The per-frame quota: of the n pairs a frame brings to a block keep q evenly spaced ones;
+        # k numbers the kept ones 0..q-1 (rank r is kept where floor((r+1) q / n) steps up).
+        n_s = jnp.maximum(n_in[ss], 1)
+        few = n_s <= q
+        k_hi = ((rank + 1) * q) // n_s
+        kept = few | (k_hi > (rank * q) // n_s)
+        rank = jnp.where(few, rank, k_hi - 1)
+        slot = jnp.where(kept, slot, s)
+        n_in = jnp.minimum(n_in, q)
+    i = received[ss] + rank                                                    # index in the block's stream
+    if policy == "ring":
+        # The r-th of n pairs goes to position (received + r) % P; the newest P survive.
+        tgt = jnp.where((slot < s) & (rank >= n_in[ss] - p), slot, s)
+        pos = i % p
+    elif policy == "reservoir":
+        # Algorithm R: the i-th pair fills position i while the block has room, else replaces a
+        # uniform position j in [0, i] if j < P. Pairs of one frame that draw the same position
+        # resolve as a sequential pass would: the later one wins (a scatter-max of the rank).
+        j = jnp.floor(jax.random.uniform(key, i.shape) * (i + 1).astype(jnp.float32)).astype(jnp.int32)
+        pos = jnp.where(i < p, i, jnp.minimum(j, i))
+        cand = jnp.where((slot < s) & (pos < p), slot, s)
+        pos = jnp.minimum(pos, p - 1)
+        winner = jnp.full((s, p), -1, jnp.int32).at[cand, pos].max(rank, mode="drop")
+        tgt = jnp.where((cand < s) & (winner[jnp.minimum(cand, s - 1), pos] == rank), cand, s)
+    else:
+        raise ValueError(f"window.block_policy must be one of {BLOCK_POLICIES}, got {policy!r}")
     store = store.replace(
         pairs=store.pairs.at[tgt, pos].set(jnp.concatenate([points, labels[:, None]], -1), mode="drop"),
         surface=store.surface.at[tgt, pos].set(surface, mode="drop"),
         frame=store.frame.at[tgt, pos].set(frame, mode="drop"),
-        head=(head + n_in) % p,
+        received=received + n_in,
+        frames_seen=frames_seen + (n_in > 0),
         count=jnp.minimum(count + n_in, p),
         last_frame=jnp.where(n_in > 0, frame, last_frame),
         voxel_of_slot=voxel_of_slot, slot_of_voxel=slot_of_voxel, coord=coord,
     )
-    inside = in_window(store, center_vox, radius_vox, mode=mode, frame=frame, keyframes=keyframes)
+    inside = in_window(store, center_vox, radius_vox)
     ids, n = window_slots(inside & (store.count > 0))
     return store, ids, n, StoreStats(ok, n_need, n_free)
 
@@ -229,6 +264,21 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
 def window_slots(in_window):
     """Compact list of window slots. in_window: [S] bool -> (ids [S] int32, n [] int32): `ids[:n]`."""
     return nonzero_fixed(in_window, in_window.shape[0], 0), in_window.sum().astype(jnp.int32)
+
+
+def frames_held_fraction(store: PairStore, ids, n, min_frames: int = 1):
+    """Median over the window's blocks `ids[:n]` observed by at least `min_frames` frames of (distinct
+    frames among the pairs a block holds) / (frames that offered it pairs since it entered the
+    window): 1.0 = every viewpoint kept. (Most window voxels are seen by few frames, so the median
+    over all is 1.0 for any policy; min_frames=10 shows what a policy keeps of well-observed voxels.)"""
+    held = jnp.arange(store.block_size)[None, :] < store.count[ids][:, None]
+    b = jnp.where(held, store.frame[ids], -1)                                  # [S, P]
+    srt = jnp.sort(b, axis=1)
+    distinct = jnp.sum((srt >= 0) & jnp.concatenate([jnp.ones_like(srt[:, :1], bool), srt[:, 1:] != srt[:, :-1]], 1),
+                       axis=1)
+    frac = distinct / jnp.maximum(store.frames_seen[ids], 1)
+    frac = jnp.where((jnp.arange(ids.shape[0]) < n) & (store.frames_seen[ids] >= min_frames), frac, jnp.nan)
+    return jnp.nanmedian(frac)
 
 
 def total_pairs(store: PairStore):
