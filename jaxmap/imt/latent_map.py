@@ -398,15 +398,21 @@ def _encode_padded(prior, cells, normals, counts, level, voxel_size, min_points,
             raise hashing.CapacityError(f"encode: more than {hashing.MAX_CAPACITY // 2} voxels in one frame")
 
 
+def _points_and_normals(points, normals) -> tuple[np.ndarray, np.ndarray]:
+    """Both as float32 [N,3], checked (a ValueError for shapes, a DataError for NaN/inf)."""
+    points = np.asarray(points, np.float32)
+    normals = np.asarray(normals, np.float32)
+    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
+        raise ValueError(f"points and normals must both be [N,3], got {points.shape} and {normals.shape}")
+    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
+        raise DataError("encode: points or normals contain NaN/inf; drop them first (jaxmap.io does)")
+    return points, normals
+
+
 def encode_cells(prior, cells, normals, counts, voxel_size: float, min_points: int = 10,
                  with_jacobian: bool = True, capacity: int | None = None) -> LatentMap:
     """The local map of pooled cells (`pool_cells`), map frame. See `encode_world`."""
-    cells = np.asarray(cells, np.float32)
-    normals = np.asarray(normals, np.float32)
-    if cells.ndim != 2 or cells.shape[1] != 3 or normals.shape != cells.shape:
-        raise ValueError(f"points and normals must both be [N,3], got {cells.shape} and {normals.shape}")
-    if not (np.all(np.isfinite(cells)) and np.all(np.isfinite(normals))):
-        raise DataError("encode: points or normals contain NaN/inf; drop them first (jaxmap.io does)")
+    cells, normals = _points_and_normals(cells, normals)
     n_pad = bucket(len(cells))
     coords, lat, jac, w, _, table = _encode_padded(
         prior, _pad(cells, n_pad, np.float32), _pad(normals, n_pad, np.float32), _pad(counts, n_pad, np.float32),
@@ -417,12 +423,7 @@ def encode_cells(prior, cells, normals, counts, voxel_size: float, min_points: i
 def encode_world(prior, points_w, normals_w, voxel_size: float, min_points: int = 10,
                  with_jacobian: bool = True, capacity: int | None = None, cells_per_voxel: int = 1) -> LatentMap:
     """Encode world-frame points and normals on the world grid (see `encode_frame`)."""
-    points_w = np.asarray(points_w, np.float32)
-    normals_w = np.asarray(normals_w, np.float32)
-    if points_w.ndim != 2 or points_w.shape[1] != 3 or normals_w.shape != points_w.shape:
-        raise ValueError(f"points and normals must both be [N,3], got {points_w.shape} and {normals_w.shape}")
-    if not (np.all(np.isfinite(points_w)) and np.all(np.isfinite(normals_w))):
-        raise DataError("encode: points or normals contain NaN/inf; drop them first (jaxmap.io does)")
+    points_w, normals_w = _points_and_normals(points_w, normals_w)
     c, n, k = pool_cells(points_w, normals_w, voxel_size, cells_per_voxel)
     return encode_cells(prior, c, n, k, voxel_size, min_points, with_jacobian, capacity)
 

@@ -636,20 +636,8 @@ def _pedestrian_boxes(P: CityPreset, seed: int, n_frames: int, step: float, bloc
         x0, x1, y0, y1 = block
         hx, hy = (x1 - x0) / 2 - d, (y1 - y0) / 2 - d
     square = LoopPath(hx, hy, 1e-3)
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 202]))
-    n = P.pedestrians
-    s0 = (np.arange(n) + rng.uniform(0.1, 0.9, n)) * square.length / n
-    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
-    frames = []
-    for i in range(n_frames):
-        peds = []
-        for k in range(n):
-            x, y, yaw = square.at(s0[k] + sign[k] * step * i)
-            if block is not None:  # (only here: adding 0.0 would turn a -0.0 of the default into 0.0)
-                x, y = x + (x0 + x1) / 2, y + (y0 + y1) / 2
-            peds.append(((x, y), yaw + (0.0 if sign[k] > 0 else np.pi)))
-        frames.append(peds)
-    return frames
+    shift = None if block is None else ((x0 + x1) / 2, (y0 + y1) / 2)
+    return C.walkers(square, P.pedestrians, seed, 202, n_frames, step, shift)
 
 
 def _pedestrian_mesh(peds):

@@ -420,3 +420,22 @@ def rounded(x, nd=4):
     if isinstance(x, (list, tuple, np.ndarray)):
         return [rounded(v, nd) for v in x]
     return round(float(x), nd)
+
+
+def walkers(path, n: int, seed, tag: int, n_frames: int, step: float, shift=None) -> list:
+    """Per frame a list of (center_xy, yaw) of n pedestrians walking along `path` (an object with
+    `.length` and `.at(s) -> (x, y, yaw)`), every other one the other way, `step` metres a frame, from
+    seeded random starts (`SeedSequence([seed, tag])`); `shift` (dx, dy) moves them all."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, tag]))
+    s0 = (np.arange(n) + rng.uniform(0.1, 0.9, n)) * path.length / n
+    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    frames = []
+    for i in range(n_frames):
+        peds = []
+        for k in range(n):
+            x, y, yaw = path.at(s0[k] + sign[k] * step * i)
+            if shift is not None:  # (only then: adding 0.0 would turn a -0.0 into 0.0)
+                x, y = x + shift[0], y + shift[1]
+            peds.append(((x, y), yaw + (0.0 if sign[k] > 0 else np.pi)))
+        frames.append(peds)
+    return frames

@@ -235,15 +235,4 @@ def build_suburb(P: SuburbPreset, seed: int, path: CurvePath):
 def pedestrian_boxes(P: SuburbPreset, seed: int, n_frames: int, step: float):
     """Per frame a list of (center_xy, yaw): pedestrians walking along the outer sidewalk."""
     path = CurvePath(P, P.road_width / 2 + 1.5)
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 212]))
-    n = P.pedestrians
-    s0 = (np.arange(n) + rng.uniform(0.1, 0.9, n)) * path.length / n
-    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
-    frames = []
-    for i in range(n_frames):
-        peds = []
-        for k in range(n):
-            x, y, yaw = path.at(s0[k] + sign[k] * step * i)
-            peds.append(((x, y), yaw + (0.0 if sign[k] > 0 else np.pi)))
-        frames.append(peds)
-    return frames
+    return C.walkers(path, P.pedestrians, seed, 212, n_frames, step)
