@@ -33,8 +33,7 @@ from jaxmap.errors import CheckpointError
 from jaxmap.grid import hashing
 from jaxmap.n3 import core
 
-_STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames_seen", "voxel_of_slot", "coord",
-                       "last_frame")
+_STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames_seen", "voxel_of_slot", "coord")
 
 
 def _rows(x, n: int) -> np.ndarray:

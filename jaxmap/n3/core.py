@@ -161,8 +161,8 @@ class FrameStats(NamedTuple):
     feature_rows: jax.Array     # [] int32 corner rows allocated
     new_voxels: jax.Array       # [] int32 voxels this pass allocated
     new_feature_rows: jax.Array # [] int32 corner rows this pass allocated
-    blocks_needed: jax.Array    # [] int32
-    blocks_free: jax.Array      # [] int32
+    blocks_needed: jax.Array    # [] int32 (pool ablations: pairs the pool must hold after the frame)
+    blocks_free: jax.Array      # [] int32 (pool ablations: 0)
     window_blocks: jax.Array    # [] int32 blocks in the window holding pairs
     store_pairs: jax.Array      # [] int32 pairs held by the store
     free_dropped: jax.Array     # [] int32 free-space samples outside every allocated voxel (train nothing)
@@ -334,41 +334,28 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
                             jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
     allowed = ~v_over & ~c_over & (pending == 0)
     center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
-    if static.uses_pool:
-        return _integrate_pool(static, state, samples, rows, allowed, voxels, corners, voxel_coord,
-                               voxel_corner_rows, done, pending, v_over, c_over, n_new_v, n_new_c,
-                               jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32))
-    store, ids, n_win, sst = window.update(
-        state.store, rows, vox, samples.points, samples.labels, samples.surface, state.frame, center, allowed,
-        jax.random.fold_in(key, 1), radius_vox=static.radius_vox, policy=static.block_policy,
-        pairs_per_frame=static.pairs_per_frame)
-    store = store.replace(window_ids=jnp.where(sst.ok, ids, state.store.window_ids),
-                          window_n=jnp.where(sst.ok, n_win, state.store.window_n))
+    if static.uses_pool:  # the replay / keyframe ablations: the frame's pairs go to the flat pool
+        new_pool, pst = pool.update(state.pool, rows, samples.points, samples.labels, samples.surface,
+                                    state.frame, allowed, keyframes=static.keyframes)
+        zero = jnp.zeros((), jnp.int32)
+        store, ok, needed, free, pairs = state.store, pst.ok, pst.needed, zero, new_pool.n
+    else:
+        store, ids, n_win, sst = window.update(
+            state.store, rows, vox, samples.points, samples.labels, samples.surface, state.frame, center, allowed,
+            jax.random.fold_in(key, 1), radius_vox=static.radius_vox, policy=static.block_policy,
+            pairs_per_frame=static.pairs_per_frame)
+        store = store.replace(window_ids=jnp.where(sst.ok, ids, state.store.window_ids),
+                              window_n=jnp.where(sst.ok, n_win, state.store.window_n))
+        new_pool, ok, needed, free = None, sst.ok, sst.blocks_needed, sst.blocks_free
+        pairs = window.total_pairs(store)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
-                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store)
+                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool)
     stats = FrameStats(
-        ok=sst.ok, voxel_overflow=v_over, corner_overflow=c_over, store_overflow=allowed & ~sst.ok,
+        ok=ok, voxel_overflow=v_over, corner_overflow=c_over, store_overflow=allowed & ~ok,
         pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
-        new_feature_rows=n_new_c, blocks_needed=sst.blocks_needed, blocks_free=sst.blocks_free,
-        window_blocks=store.window_n, store_pairs=window.total_pairs(store),
-        free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
+        new_feature_rows=n_new_c, blocks_needed=needed, blocks_free=free, window_blocks=store.window_n,
+        store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
     )
-    return state, stats
-
-
-def _integrate_pool(static, state, samples, rows, allowed, voxels, corners, voxel_coord, voxel_corner_rows, done,
-                    pending, v_over, c_over, n_new_v, n_new_c, free_dropped):
-    """The replay / keyframe ablations: the frame's pairs go to the flat pool, not to blocks."""
-    new_pool, pst = pool.update(state.pool, rows, samples.points, samples.labels, samples.surface, state.frame,
-                                allowed, keyframes=static.keyframes)
-    state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
-                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, pool=new_pool)
-    zero = jnp.zeros((), jnp.int32)
-    stats = FrameStats(
-        ok=pst.ok, voxel_overflow=v_over, corner_overflow=c_over, store_overflow=allowed & ~pst.ok,
-        pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
-        new_feature_rows=n_new_c, blocks_needed=pst.needed, blocks_free=zero, window_blocks=zero,
-        store_pairs=new_pool.n, free_dropped=free_dropped)
     return state, stats
 
 

@@ -15,6 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxmap.n3 import pool as pairpool
 from jaxmap.n3.window import PairStore
 
 
@@ -76,9 +77,7 @@ def sample_uniform(key, store: PairStore, ids, n, *, batch: int) -> Batch:
 def sample_pool(key, pool, voxel_coord, *, batch: int) -> Batch:
     """`batch` pairs uniformly from all pairs of a `pool.PairPool` (the replay / keyframe ablations);
     voxel_coord: [V, 3] int32 leaf coordinate of each voxel row."""
-    from jaxmap.n3 import pool as pool_mod
-
-    i, mask = pool_mod.sample(key, pool, batch=batch)
+    i, mask = pairpool.sample(key, pool, batch=batch)
     v = pool.voxel_row[i]
     rows = pool.pairs[i][:, None]                                         # [B, 1, 4]
     return Batch(v, voxel_coord[jnp.maximum(v, 0)], rows[..., :3], rows[..., 3], pool.surface[i][:, None],

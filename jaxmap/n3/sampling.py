@@ -54,6 +54,7 @@ def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, 
     ray = points_m - origin_m
     dist = jnp.linalg.norm(ray, axis=-1, keepdims=True)       # [N,1]
     r = ray / jnp.maximum(dist, 1e-6)                          # [N,3] unit, sensor -> p
+    cos = jnp.abs(jnp.sum(r * normals_m, axis=-1, keepdims=True))   # [N,1] |cos| of the incidence angle
 
     d = jnp.clip(sigma * jax.random.normal(k_surf, (n, n_surface)), -trunc, trunc)   # [N,ns]
     if label_mode == "normal":
@@ -63,7 +64,7 @@ def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, 
         xs = points_m[:, None] - d[..., None] * r[:, None]
         ls = d
         if label_mode == "corrected":
-            ls = d * jnp.abs(jnp.sum(r * normals_m, axis=-1, keepdims=True))
+            ls = d * cos
 
     # Free space: uniform in [dist - trunc - free_band, dist - trunc], never behind the sensor.
     u = jax.random.uniform(k_free, (n, n_free))
@@ -73,7 +74,6 @@ def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, 
     xf = origin_m + t[..., None] * r[:, None]
     lf = jnp.full((n, n_free), free_label, jnp.float32)
     if free_label_mode == "projected":
-        cos = jnp.abs(jnp.sum(r * normals_m, axis=-1, keepdims=True))            # [N,1]
         lf = jnp.minimum(lf, (dist - t) * cos)
 
     pts = jnp.concatenate([xs, xf], axis=1).reshape(-1, 3)

@@ -40,7 +40,6 @@ class PairStore:
     frames_seen: jax.Array    # [S] int32: frames that offered pairs to the block since it was assigned
     voxel_of_slot: jax.Array  # [S] int32: voxel row owning the slot, -1 = free
     coord: jax.Array          # [S, 3] int32: leaf-voxel coordinate of the block
-    last_frame: jax.Array     # [S] int32: last frame that wrote into the block
     slot_of_voxel: jax.Array  # [V] int32: slot of each voxel row, -1 = none
     window_ids: jax.Array     # [S] int32: the window's blocks that hold pairs, `window_ids[:window_n]`
     window_n: jax.Array       # [] int32  (as of the last `update`; what training samples from)
@@ -65,7 +64,6 @@ def create(n_slots: int, pairs_per_voxel: int, n_voxel_rows: int) -> PairStore:
         frames_seen=jnp.zeros((s,), jnp.int32),
         voxel_of_slot=jnp.full((s,), -1, jnp.int32),
         coord=jnp.zeros((s, 3), jnp.int32),
-        last_frame=jnp.full((s,), -1, jnp.int32),
         slot_of_voxel=jnp.full((n_voxel_rows,), -1, jnp.int32),
         window_ids=jnp.zeros((s,), jnp.int32),
         window_n=jnp.zeros((), jnp.int32),
@@ -86,7 +84,7 @@ def grow(store: PairStore, n_slots: int | None = None, n_voxel_rows: int | None 
         frame=put(fresh.frame, store.frame), count=put(fresh.count, store.count),
         received=put(fresh.received, store.received), frames_seen=put(fresh.frames_seen, store.frames_seen),
         voxel_of_slot=put(fresh.voxel_of_slot, store.voxel_of_slot),
-        coord=put(fresh.coord, store.coord), last_frame=put(fresh.last_frame, store.last_frame),
+        coord=put(fresh.coord, store.coord),
         slot_of_voxel=put(fresh.slot_of_voxel, store.slot_of_voxel),
         window_ids=put(fresh.window_ids, store.window_ids), window_n=store.window_n,
     ) if (s_new, v_new) != (s_old, v_old) else store
@@ -199,7 +197,6 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     count = jnp.where(drop, 0, store.count)
     received = jnp.where(drop, 0, store.received)
     frames_seen = jnp.where(drop, 0, store.frames_seen)
-    last_frame = jnp.where(drop, -1, store.last_frame)
     # Assign: voxels needing a block take the free blocks in order of voxel row (deterministic, and
     # the order of the pre-refactor store).
     k = min(m, s)
@@ -253,7 +250,6 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
         received=received + n_in,
         frames_seen=frames_seen + (n_in > 0),
         count=jnp.minimum(count + n_in, p),
-        last_frame=jnp.where(n_in > 0, frame, last_frame),
         voxel_of_slot=voxel_of_slot, slot_of_voxel=slot_of_voxel, coord=coord,
     )
     inside = in_window(store, center_vox, radius_vox)
