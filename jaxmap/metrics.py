@@ -415,15 +415,13 @@ def evaluate_mesh(mesh, gt_points, *, n_samples: int = N_SAMPLES, seed: int = 0,
                   observed_points=None, cull_distance_m: float = 0.3, sensor_positions=None,
                   eval_radius_m: float = -1.0, down_sample_m: float = DOWN_SAMPLE_M,
                   acc_truncation_m: float = ACC_TRUNCATION_M, comp_truncation_m: float = COMP_TRUNCATION_M,
-                  protocol: str = PROTOCOL, gt_mesh=None) -> dict:
+                  protocol: str = PROTOCOL) -> dict:
     """The protocol on a predicted mesh (trimesh.Trimesh or a path): cull the GT, crop the mesh to the GT
     box, sample n_samples points, down-sample, compare (see the module docstring and :func:`evaluate`).
 
     An empty mesh (no faces, or none inside the box) gives the metrics of an empty prediction. With
     protocol="surface" the result also has completion_surface_cm (kept GT points -> the cropped mesh,
-    exact, clamped at comp_truncation_m; needs open3d). gt_mesh is accepted for older callers and
-    ignored: nothing is measured against the GT mesh."""
-    del gt_mesh
+    exact, clamped at comp_truncation_m; needs open3d). Nothing is measured against the GT mesh."""
     if protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
     v, f = _mesh_arrays(mesh)
