@@ -131,6 +131,23 @@ def test_pose_graph_loop_corrects_drifting_odometry():
     assert g.edge_errors()[-1][1] < 0.05
 
 
+def test_isotropic_information_keeps_each_blocks_scale_and_drops_the_cross_terms(noisy_room):
+    """ICP's information of two room views has strong rotation-translation cross terms (points metres
+    from the sensor); `isotropic_information` keeps the mean eigenvalue of each block and nothing else."""
+    from jaxmap.slam.frontend import isotropic_information
+    pts, gt = noisy_room
+    cfg = OdometryConfig()
+    a, b = Scan(pts[0], cfg), Scan(pts[1], cfg)
+    info = icp(b.points, b.normals, a.points, a.normals, se3_inverse(gt[0]) @ gt[1], 0.06).information
+    cross = np.abs(info[:3, 3:]).max() / np.sqrt(np.abs(np.diag(info)[:3]).max() * np.abs(np.diag(info)[3:]).max())
+    assert cross > 0.1                                           # ICP's is coupled
+    iso = isotropic_information(info)
+    assert np.allclose(iso, np.diag(np.diag(iso))) and np.all(np.diag(iso) > 0)
+    assert np.isclose(np.trace(iso[:3, :3]), np.trace(info[:3, :3]))
+    assert np.isclose(np.trace(iso[3:, 3:]), np.trace(info[3:, 3:]))
+    assert np.allclose(iso[:3, :3], iso[0, 0] * np.eye(3)) and np.allclose(iso[3:, 3:], iso[3, 3] * np.eye(3))
+
+
 # ------------------------------------------------------------------------------------------------
 # ICP and odometry
 # ------------------------------------------------------------------------------------------------
@@ -312,6 +329,10 @@ def test_frontend_room_closes_loop_and_reduces_error(noisy_room):
     after = results[first].keyframe_poses
     assert len(after) == len(before) + 1 and np.abs(after[:-1] - before).max() > 1e-4   # old keyframes moved
     assert pose_change(after[0], gt[0])[1] < 1e-9                                       # reference fixed
+
+    # every edge carries the per-block isotropic information (the default), not open3d's cross terms
+    for _, _, _, info, _ in fe.graph.edges:
+        assert np.all(info[:3, 3:] == 0) and np.allclose(info, np.diag(np.diag(info)))
 
     traj = fe.trajectory()
     assert traj.shape == (ROOM_FRAMES, 4, 4) and np.allclose(traj, fe.keyframe_poses())

@@ -30,6 +30,23 @@ from jaxmap.slam.posegraph import PoseGraph
 log = logging.getLogger("jaxmap")
 
 WEAK_INFORMATION = np.eye(6)   # information of an edge from the motion prior alone (ICP failed)
+EDGE_INFORMATION = ("isotropic", "icp")
+
+
+def isotropic_information(info: np.ndarray) -> np.ndarray:
+    """[6,6] information (open3d order: rotation, translation) -> diag(a I3, b I3), a and b the mean
+    eigenvalues of its rotation and translation blocks.
+
+    Why: open3d's ICP information counts correspondences under a point-to-point model; its cross terms
+    say that a rotation about an axis and a translation across it are nearly interchangeable for points
+    a few metres away, and the pose graph then pushes a loop's correction into exactly that combination.
+    With depth noise that grows with range the real errors of an ICP edge are not shaped like that, and
+    on the drifting room the cross terms made the optimised trajectory worse than odometry alone (see
+    FrontEndConfig.edge_information). The per-block scale keeps each edge's overall confidence, and the
+    balance of rotation and translation, that the ICP measured."""
+    info = np.asarray(info, np.float64)
+    a, b = np.trace(info[:3, :3]) / 3.0, np.trace(info[3:, 3:]) / 3.0
+    return np.diag([a, a, a, b, b, b])
 
 
 @dataclass(frozen=True)
@@ -45,6 +62,12 @@ class FrontEndConfig:
                                 disagrees with the odometry by much more than this is pruned. None =
                                 loops.max_correction_m, the largest correction a verified loop may make
     preference_loop_closure, edge_prune_threshold: passed to PoseGraph.optimize
+    edge_information:           "isotropic" (default): each edge's information is ICP's made isotropic per
+                                block (the rotation block and the translation block each replaced by its
+                                mean eigenvalue times I, no cross terms; `isotropic_information`); "icp":
+                                open3d's information as computed. Measured on the drifting 300-frame room
+                                (every 6th frame, 0.002 z^2 depth noise, one loop): ATE 12.9 cm odometry,
+                                13.3 cm with "icp", 5.9 cm with "isotropic" (`jaxmap bench slam --only drift`)
     """
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
@@ -55,6 +78,7 @@ class FrontEndConfig:
     graph_max_corr_m: float | None = None  # pose-graph line-process distance (m); null = loops.max_correction_m
     preference_loop_closure: float = 1.0  # open3d GlobalOptimizationOption.preference_loop_closure
     edge_prune_threshold: float = 0.25  # open3d: loop edges with a line-process weight below this are pruned
+    edge_information: str = "isotropic"  # isotropic (ICP's, per block) | icp (open3d's, with cross terms)
 
     @classmethod
     def lidar(cls, **overrides) -> "FrontEndConfig":
@@ -172,7 +196,10 @@ class FrontEnd:
         information of the chained frame-to-frame ICPs (covariances added, frame rotations ignored)."""
         T = orthonormalize(se3_inverse(self.graph.poses[k - 1]) @ self.graph.poses[k])
         info = np.linalg.inv(self._cov_since_kf)
-        self.graph.add_odometry(k - 1, k, T, 0.5 * (info + info.T))
+        self.graph.add_odometry(k - 1, k, T, self._edge_information(0.5 * (info + info.T)))
+
+    def _edge_information(self, info: np.ndarray) -> np.ndarray:
+        return isotropic_information(info) if self.cfg.edge_information == "isotropic" else info
 
     def _search_loop(self, k: int, pose: np.ndarray) -> LoopResult | None:
         """Verify loop candidates for keyframe k (nearest first); adds the first accepted loop edge."""
@@ -185,7 +212,7 @@ class FrontEnd:
             log.debug("loop candidate keyframe %d -> %d: %s", k, c, res.reason)
             last = res
             if res.accepted:
-                self.graph.add_loop(c, k, res.T_rel, res.information)
+                self.graph.add_loop(c, k, res.T_rel, self._edge_information(res.information))
                 self.loops.append((c, k))
                 log.info("loop closed: keyframe %d (frame %d) -> keyframe %d (frame %d), fitness %.3f, RMSE %.4f m",
                          k, self.kf_frame[k], c, self.kf_frame[c], res.fitness, res.rmse)
