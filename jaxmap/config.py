@@ -167,6 +167,7 @@ class LatentMapConfig:
     remap_min_translation_m: float = 0.002  # ... or this
     remap_rebuild_fraction: float = 0.5  # rebuild the map from every keyframe when more than this share moved
     cells_per_voxel: int = 1          # points are pooled into cells of voxel / this before encoding (0 = none)
+    transform_cells_per_voxel: int = 2  # the same for local maps encoded with Jacobians (for `transform`)
     initial_capacity: int = 16384     # hash-table slots of the global map at start (grows, logged)
     prior: str = ""                   # prior weights (.npz); "" = the weights shipped in the package
 
@@ -305,7 +306,8 @@ RULES: dict[type, dict[str, Rule]] = {
     LatentMapConfig: {"voxel_size_m": above(0.0), "min_points": at_least(1),
                       "interpolation": one_of("trilinear", "softmax"), "softmax_temperature": above(0.0),
                       "k_neighbours": at_least(1), "splat_power": above(0.0), "remap_min_rotation_deg": at_least(0.0),
-                      "remap_min_translation_m": at_least(0.0), "initial_capacity": at_least(1)},
+                      "remap_min_translation_m": at_least(0.0), "initial_capacity": at_least(1),
+                      "cells_per_voxel": at_least(0), "transform_cells_per_voxel": at_least(0)},
     LatentMeshConfig: {"resolution": EVEN_AT_LEAST_2, "min_weight": at_least(0.0), "min_component_faces": at_least(0)},
     ImtConfig: {"output": NONEMPTY},
 }

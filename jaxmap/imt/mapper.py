@@ -57,10 +57,17 @@ class ImtMapper:
         return preprocess_scan(np.asarray(points_s, np.float32), self.cfg.preprocess)
 
     def encode(self, points_s, normals_s, pose, with_jacobian: bool = True) -> lm.LatentMap:
-        """Local map of preprocessed points at `pose` (world grid), with Jacobians for `transform`."""
+        """Local map of preprocessed points at `pose` (world grid), with Jacobians for `transform`.
+
+        With Jacobians the points are pooled finer (`map.transform_cells_per_voxel`, default 2): a
+        transformed local map is compared with one pooled on another grid, and one cell per voxel doubles
+        that difference (two-branch test 0.78 cm against 0.41 cm at 2 and 0.39 cm unpooled, `jaxmap bench
+        imt`). The map's own path (`add_frame`, `remap`) re-encodes the same stored cells, so it keeps the
+        coarser, 4x cheaper `map.cells_per_voxel`."""
         c = self.cfg.map
+        cpv = c.transform_cells_per_voxel if with_jacobian else c.cells_per_voxel
         return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
-                               with_jacobian=with_jacobian, cells_per_voxel=c.cells_per_voxel)
+                               with_jacobian=with_jacobian, cells_per_voxel=cpv)
 
     def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None) -> dict:
         """Encode, fuse and keep a frame. Returns its timings (s) and sizes.

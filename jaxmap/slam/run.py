@@ -6,8 +6,8 @@ Per frame of the sequence (its poses.txt is only used for the first pose and for
      the pose estimate;
   2. a keyframe is encoded and fused into the transformable latent map (`ImtMapper`) at that pose;
   3. when a loop is accepted and the graph optimised, the latent map is remapped to the optimised
-     keyframe poses (`jaxmap.imt.remap`: only the keyframes whose pose moved are touched), with a
-     mesh written before and after (`loop_<n>_before.ply`, `loop_<n>_after.ply`).
+     keyframe poses (`jaxmap.imt.remap`: only the keyframes whose pose moved are touched); with
+     `mesh_at_loops` a mesh is written before and after (`loop_<n>_before.ply`, `loop_<n>_after.ply`).
 With `external_poses: DIR` the front end is replaced by pose-graph snapshots of another SLAM system
 (one TUM or KITTI file per keyframe update, in natural order, as ORB-SLAM2 writes them; snapshot i
 holds the poses of the first n_i frames of the selection): new frames are fused with their snapshot
@@ -67,7 +67,7 @@ class SlamConfig:
     eval: EvalConfig = field(default_factory=lambda: ImtConfig().eval)
     frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
     external_poses: str = ""          # directory of pose snapshots replacing the front end ("" = our own)
-    mesh_at_loops: bool = True        # write meshes before and after each loop closure
+    mesh_at_loops: bool = False       # write meshes before and after each loop closure (a whole-map mesh each: slow)
     n3_config: str = ""               # also build an N3 map from the optimised poses with this config
     output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
