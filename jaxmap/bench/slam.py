@@ -185,9 +185,27 @@ def _print_kinect(res: dict) -> None:
             g = r["recon"]["GT poses"].get("chamfer_l1_cm", float("nan"))
             m = r["recon"]["slam (remapped)"].get("chamfer_l1_cm", float("nan"))
             print(f"slam (remapped) / GT-pose C-L1 = {m / g:.3f} (target <= 1.10)")
-        for lp in r["loops"]:
-            print(f"  loop at frame {lp['frame']}: pose graph {lp['optimize_s']:.3f} s, remap {lp['keyframes_moved']} of "
-                  f"{lp['keyframes']} keyframes in {lp['remap_s']:.2f} s")
+        _print_loops(r["loops"])
+
+
+def _print_loops(loops: list, each: int = 6) -> None:
+    """A line per loop for a few loops; for many, a summary and the slowest remaps."""
+    def line(lp):
+        print(f"  loop at frame {lp['frame']}: pose graph {lp['optimize_s']:.3f} s, remap {lp['keyframes_moved']} of "
+              f"{lp['keyframes']} keyframes in {lp['remap_s']:.2f} s")
+
+    if len(loops) <= each:
+        for lp in loops:
+            line(lp)
+        return
+    t = np.array([lp["remap_s"] for lp in loops])
+    moved = np.array([lp["keyframes_moved"] for lp in loops])
+    per = t[moved > 0] / moved[moved > 0]
+    print(f"  {len(loops)} loops: remap median {np.median(t):.2f} s, total {t.sum():.1f} s, "
+          f"{1e3 * np.median(per):.0f} ms per moved keyframe (median); pose graph median "
+          f"{np.median([lp['optimize_s'] for lp in loops]):.3f} s; the {min(3, len(loops))} slowest remaps:")
+    for i in sorted(np.argsort(-t)[:3]):
+        line(loops[i])
 
 
 METHODS = {"kiss_icp": "KISS-ICP", "icp": "ICP (jaxmap)"}
