@@ -217,6 +217,25 @@ def test_encode_world_matches_a_per_voxel_loop(prior):
     assert {tuple(k) for k, c in zip(keys, counts) if c >= 5} == set(got)
 
 
+def test_an_encode_that_overflowed_starts_at_the_size_that_worked_next_time(prior, monkeypatch):
+    """Isolated cells (sparse LiDAR) feed 8 voxels each and overflow the first table size; the retried
+    size is remembered per padded count, so the next encode of that shape runs once, not twice."""
+    rng = np.random.default_rng(4)
+    cells = (rng.permutation(4000)[:1500, None] * np.array([[0.7, 0.0, 0.0]])).astype(np.float32)  # 0.7 m apart
+    nrm = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (len(cells), 1))
+    cnt = np.full(len(cells), 20, np.float32)
+    calls = []
+    core = lm._encode_core
+    monkeypatch.setattr(lm, "_encode_core", lambda *a, **k: calls.append(a[-2]) or core(*a, **k))
+    monkeypatch.setattr(lm, "_CAPACITY_HINT", {})
+    first = lm.encode_cells(prior, cells, nrm, cnt, 0.1, with_jacobian=False)
+    assert len(calls) >= 2 and calls[-1] > calls[0]                  # overflowed, then grew
+    calls.clear()
+    again = lm.encode_cells(prior, cells, nrm, cnt, 0.1, with_jacobian=False)
+    assert len(calls) == 1
+    assert first.num_active() == again.num_active() == 8 * len(cells)  # every voxel of every cell kept
+
+
 def test_rotation_about_a_voxel_centre_equals_encoding_rotated_points(prior):
     rng = np.random.default_rng(4)
     vs = 0.125

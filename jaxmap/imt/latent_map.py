@@ -380,18 +380,23 @@ def _pad(x, n_pad: int, dtype, fill=0):
     return np.concatenate([x, np.full((n_pad - len(x),) + x.shape[1:], fill, dtype)])
 
 
+_CAPACITY_HINT: dict[int, int] = {}   # padded cell count -> the encode table size that last sufficed
+
+
 def _encode_padded(prior, cells, normals, counts, level, voxel_size, min_points, with_jacobian, capacity=None):
     """Encode cells already padded to a bucketed count (`bucket`); retry with a bigger table on overflow."""
     n_pad = cells.shape[0]
     args = (cells, normals, counts, level)
     if capacity is None:
         # a cell feeds 8 voxels and a voxel's cube holds up to 8 cells: 2 rows per cell covers surfaces,
-        # isolated cells (8 rows each) make the rare retry
-        capacity = 1 << max(10, math.ceil(math.log2(4 * n_pad)))
+        # isolated cells (8 rows each, sparse LiDAR) need a retry; the size that worked for this padded
+        # count is remembered, so a sequence retries (and compiles the bigger table) once, not every call
+        capacity = max(1 << max(10, math.ceil(math.log2(4 * n_pad))), _CAPACITY_HINT.get(n_pad, 0))
     while True:
         out = _encode_core(prior, *args, jnp.float32(min_points), float(voxel_size), int(capacity),
                            bool(with_jacobian))
         if not bool(out[-1]):
+            _CAPACITY_HINT[n_pad] = max(capacity, _CAPACITY_HINT.get(n_pad, 0))
             return out[:-1]
         capacity *= 2
         if capacity > hashing.MAX_CAPACITY:
