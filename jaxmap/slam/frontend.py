@@ -117,6 +117,9 @@ class FrontEnd:
 
     def __init__(self, cfg: FrontEndConfig | None = None, initial_pose: np.ndarray | None = None):
         self.cfg = cfg or FrontEndConfig()
+        if self.cfg.edge_information not in EDGE_INFORMATION:
+            raise ValueError(f"frontend.edge_information must be one of {', '.join(EDGE_INFORMATION)}, "
+                             f"got {self.cfg.edge_information!r}")
         self.odometry = make_odometry(self.cfg.odometry, initial_pose)   # ICP or KISS-ICP (odometry.method)
         self.graph = PoseGraph()
         self.kf_scans: list[Scan] = []          # per keyframe: prepared points/normals, sensor frame
