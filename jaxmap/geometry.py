@@ -97,7 +97,7 @@ def random_rotation_jax(key):
     return q.at[:, 0].multiply(flip)
 
 
-def orthonormalize(T, xnp=np):
+def orthonormalize(T):
     """The nearest rigid transform: the rotation block of T ([..., 4, 4], or [..., 3, 3]) projected onto
     SO(3) by SVD (`U V^T`, det fixed to +1), the last row reset to [0 0 0 1]; same dtype.
 
@@ -105,18 +105,18 @@ def orthonormalize(T, xnp=np):
     chains of thousands of float64 products stay on SE(3) (|R^T R - I| ~ 1e-15) instead of drifting off
     it (open3d's optimiser and long ICP chains leave ~1e-3 after a few hundred frames).
     """
-    T = xnp.asarray(T)
+    T = np.asarray(T)
     R = T[..., :3, :3] if T.shape[-1] == 4 else T
-    U, _, Vt = xnp.linalg.svd(R)
-    d = xnp.sign(xnp.linalg.det(U @ Vt))
-    d = xnp.where(d == 0, 1.0, d)
-    Vt = xnp.concatenate([Vt[..., :2, :], Vt[..., 2:, :] * d[..., None, None]], axis=-2)
+    U, _, Vt = np.linalg.svd(R)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d = np.where(d == 0, 1.0, d)
+    Vt = np.concatenate([Vt[..., :2, :], Vt[..., 2:, :] * d[..., None, None]], axis=-2)
     Rn = (U @ Vt).astype(T.dtype)
     if T.shape[-1] == 3:
         return Rn
-    top = xnp.concatenate([Rn, T[..., :3, 3:]], axis=-1)
-    bottom = xnp.broadcast_to(xnp.asarray([0.0, 0.0, 0.0, 1.0], dtype=T.dtype), top.shape[:-2] + (1, 4))
-    return xnp.concatenate([top, bottom], axis=-2)
+    top = np.concatenate([Rn, T[..., :3, 3:]], axis=-1)
+    bottom = np.broadcast_to(np.asarray([0.0, 0.0, 0.0, 1.0], dtype=T.dtype), top.shape[:-2] + (1, 4))
+    return np.concatenate([top, bottom], axis=-2)
 
 
 def compose(*poses):

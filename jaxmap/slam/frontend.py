@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from jaxmap.geometry import orthonormalize, pose_change, se3_inverse
+from jaxmap.geometry import compose, orthonormalize, pose_change, se3_inverse
 from jaxmap.slam.loops import LoopConfig, LoopResult, find_candidates, verify
 from jaxmap.slam.odometry import OdometryConfig, Scan, make_odometry
 from jaxmap.slam.posegraph import PoseGraph
@@ -167,7 +167,7 @@ class FrontEnd:
             self._cov_since_kf = self._cov_since_kf + np.linalg.inv(info + 1e-6 * np.eye(6))
         if not self._is_keyframe(index, pose):
             k = len(self.graph) - 1
-            self.frame_ref.append((k, orthonormalize(se3_inverse(self.graph.poses[k]) @ pose)))
+            self.frame_ref.append((k, compose(se3_inverse(self.graph.poses[k]), pose)))
             return FrameResult(index, pose, False, -1, None, False, self.keyframe_poses(), step.ok, timings)
 
         scan = self.odometry.last
@@ -197,7 +197,7 @@ class FrontEnd:
     def _link_keyframe(self, k: int) -> None:
         """Add the odometry edge (k-1, k): the odometry motion between the two keyframes, with the
         information of the chained frame-to-frame ICPs (covariances added, frame rotations ignored)."""
-        T = orthonormalize(se3_inverse(self.graph.poses[k - 1]) @ self.graph.poses[k])
+        T = compose(se3_inverse(self.graph.poses[k - 1]), self.graph.poses[k])
         info = np.linalg.inv(self._cov_since_kf)
         self.graph.add_odometry(k - 1, k, T, self._edge_information(0.5 * (info + info.T)))
 
@@ -234,5 +234,5 @@ class FrontEnd:
             log.warning("loop edge keyframe %d -> %d was pruned by the pose-graph optimisation (confidence %.3f): "
                         "it disagrees with the odometry by more than graph_max_corr_m allows", k, self.loops[-1][0],
                         conf)
-        self.odometry.correct(orthonormalize(poses[k] @ se3_inverse(old)))
+        self.odometry.correct(compose(poses[k], se3_inverse(old)))
         return poses[k].copy()

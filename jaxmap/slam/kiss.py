@@ -25,7 +25,7 @@ import logging
 import numpy as np
 
 from jaxmap.errors import JaxmapError
-from jaxmap.geometry import orthonormalize
+from jaxmap.geometry import compose, orthonormalize
 from jaxmap.slam.odometry import OdometryConfig, OdomStep, Scan, quiet_open3d, to_o3d
 
 log = logging.getLogger("jaxmap")
@@ -75,7 +75,7 @@ class KissOdometry:
         self.last = scan
         pts = np.ascontiguousarray(np.asarray(points_s, dtype=np.float64).reshape(-1, 3))
         self.kiss.register_frame(pts, np.empty((0,), dtype=np.float64))
-        self.pose = orthonormalize(self.C @ self.T0 @ np.asarray(self.kiss.last_pose, dtype=np.float64))
+        self.pose = compose(self.C, self.T0, self.kiss.last_pose)
         if self.prev is None:
             self.prev = scan
             return OdomStep(self.pose.copy(), np.eye(4), 1.0, 0.0, True, np.eye(6))
@@ -104,8 +104,8 @@ class KissOdometry:
 
     def correct(self, T_corr: np.ndarray) -> None:
         """Apply a world-frame correction: pose <- T_corr @ pose (KISS-ICP's local map is untouched)."""
-        self.C = orthonormalize(np.asarray(T_corr, dtype=np.float64) @ self.C)
-        self.pose = orthonormalize(np.asarray(T_corr, dtype=np.float64) @ self.pose)
+        self.C = compose(T_corr, self.C)
+        self.pose = compose(T_corr, self.pose)
 
 
 def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tuple[np.ndarray, float]:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxmap.geometry import orthonormalize, pose_change
+from jaxmap.geometry import compose, orthonormalize, pose_change
 from jaxmap.preprocess import crop, estimate_normals, voxel_downsample
 
 log = logging.getLogger("jaxmap")
@@ -277,7 +277,7 @@ class Odometry:
                             res.fitness, cfg.min_fitness, res.inlier_rmse, cfg.max_rmse_m, dist, np.degrees(ang))
         rel = res.T if ok else prior.copy()
         self.velocity = rel
-        self.pose = orthonormalize(self.pose @ rel)   # chained products drift off SO(3) otherwise
+        self.pose = compose(self.pose, rel)   # re-orthonormalised: chained products drift off SO(3) otherwise
         self.prev = scan
         return OdomStep(self.pose.copy(), rel.copy(), res.fitness if res else 0.0, res.inlier_rmse if res else np.inf,
                         ok, res.information if ok else np.eye(6))
@@ -286,7 +286,7 @@ class Odometry:
         """Apply a world-frame correction (e.g. from a pose-graph optimisation): pose <- T_corr @ pose.
 
         The velocity (a relative motion) is unchanged, so tracking continues smoothly from the new pose."""
-        self.pose = orthonormalize(np.asarray(T_corr, dtype=np.float64) @ self.pose)
+        self.pose = compose(T_corr, self.pose)
 
 
 ODOMETRY_METHODS = ("icp", "kiss_icp")

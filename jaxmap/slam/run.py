@@ -37,7 +37,7 @@ import numpy as np
 from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig,
                            PreprocessConfig, config_from_args, load_config, save_config)
 from jaxmap.errors import DataError, JaxmapError
-from jaxmap.geometry import orthonormalize
+from jaxmap.geometry import compose
 from jaxmap.slam.frontend import FrontEndConfig
 
 log = logging.getLogger("jaxmap")
@@ -99,7 +99,7 @@ def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
             r = fe.add_frame(fr.points)
             # odometry alone: the chain of frame-to-frame motions (the velocity of the step just made),
             # which loop corrections do not touch
-            odo.append(fr.pose.copy() if i == 0 else orthonormalize(odo[-1] @ fe.odometry.velocity))
+            odo.append(fr.pose.copy() if i == 0 else compose(odo[-1], fe.odometry.velocity))
             if r.is_keyframe:
                 mapper.add_frame(fr.points, r.pose, frame=fr.index, pose_source="jaxmap's SLAM front end")
                 if r.optimized:
