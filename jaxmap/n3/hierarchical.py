@@ -28,6 +28,13 @@ class Batch(NamedTuple):
     mask: jax.Array     # [G, K] bool: pair counts in the loss
 
 
+def _store_batch(store: PairStore, slots, j, mask) -> Batch:
+    """The pairs `j [G, K]` of the store blocks `slots [G]` as a Batch (mask [G, K])."""
+    rows = store.pairs[slots[:, None], j]                                # [G, K, 4]
+    return Batch(store.voxel_of_slot[slots], store.coord[slots], rows[..., :3], rows[..., 3],
+                 store.surface[slots[:, None], j], mask)
+
+
 def draw_block_pairs(u, count, *, nt: int, block_size: int):
     """Stage 2 for ONE block (lifted over the stage-1 blocks with `jax.vmap`).
 
@@ -51,9 +58,7 @@ def sample_hierarchical(key, store: PairStore, ids, n, *, nv: int, np_: int, nt:
     draw = functools.partial(draw_block_pairs, nt=nt, block_size=store.block_size)
     j, mask = jax.vmap(draw)(jax.random.uniform(kp, (nv, np_)), store.count[slots])   # [Nv, Np] each
     mask &= (n > 0)
-    rows = store.pairs[slots[:, None], j]                                # [Nv, Np, 4]
-    return Batch(store.voxel_of_slot[slots], store.coord[slots], rows[..., :3], rows[..., 3],
-                 store.surface[slots[:, None], j], mask)
+    return _store_batch(store, slots, j, mask)
 
 
 def sample_uniform(key, store: PairStore, ids, n, *, batch: int) -> Batch:
@@ -69,9 +74,7 @@ def sample_uniform(key, store: PairStore, ids, n, *, batch: int) -> Batch:
     j = (u - (cum[w] - counts[w]))[:, None].astype(jnp.int32)          # [B,1]
     j = jnp.clip(j, 0, store.block_size - 1)
     mask = jnp.broadcast_to(total > 0, (batch, 1))
-    rows = store.pairs[slots[:, None], j]
-    return Batch(store.voxel_of_slot[slots], store.coord[slots], rows[..., :3], rows[..., 3],
-                 store.surface[slots[:, None], j], mask)
+    return _store_batch(store, slots, j, mask)
 
 
 def sample_pool(key, pool, voxel_coord, *, batch: int) -> Batch:
