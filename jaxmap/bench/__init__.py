@@ -8,3 +8,18 @@ def base_overrides(args, data: str, output: str | None = None) -> list[str]:
     if args.frames:
         base.append(f"data.end_frame={args.frames}")
     return base
+
+
+MAP_COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
+
+
+def print_map_table(rows: dict, width: int = 22, rule: bool = True) -> None:
+    """The reconstruction rows `{name: metrics}` (Acc / Comp / C-L1 / CR / F), preceded by the protocol's
+    floor (the ground truth scored against itself) when a row's metrics carry one."""
+    floor = next((m["floor"] for m in rows.values() if isinstance(m.get("floor"), dict)), None)
+    print(f"{'map':{width}s} {'Acc cm':>7s} {'Comp cm':>8s} {'C-L1 cm':>8s} {'CR %':>6s} {'F %':>6s}")
+    if rule:
+        print("-" * (width + 40))
+    for name, m in (({"floor (GT)": floor} if floor else {}) | rows).items():
+        v = [m.get(c, float("nan")) for c in MAP_COLS]
+        print(f"{name:{width}s} {v[0]:7.2f} {v[1]:8.2f} {v[2]:8.2f} {v[3]:6.2f} {v[4]:6.2f}")

@@ -27,7 +27,7 @@ import time
 import jax
 import numpy as np
 
-COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
+from jaxmap.bench import print_map_table
 
 
 def drift_poses(poses: np.ndarray, rot_deg: float = 2.0, trans_m: float = 0.10) -> np.ndarray:
@@ -245,11 +245,7 @@ def _print_two_branch(tb: dict) -> None:
 
 def _print_recon(res: dict) -> None:
     print(f"\nreconstruction at {res['frames']} frames (threshold 5 cm)")
-    print(f"{'map':24s} {'Acc cm':>7s} {'Comp cm':>8s} {'C-L1 cm':>8s} {'CR %':>6s} {'F %':>6s}")
-    print("-" * 64)
-    for name, m in res["recon"].items():
-        vals = [m.get(c, float("nan")) for c in COLS]
-        print(f"{name:24s} {vals[0]:7.2f} {vals[1]:8.2f} {vals[2]:8.2f} {vals[3]:6.2f} {vals[4]:6.2f}")
+    print_map_table(res["recon"], width=24)
     gt = res["recon"]["GT poses"].get("chamfer_l1_cm", float("nan"))
     for name, r in res["remap"].items():
         rm = res["recon"][f"remapped {name}"].get("chamfer_l1_cm", float("nan"))

@@ -27,7 +27,7 @@ import os
 
 import numpy as np
 
-COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
+from jaxmap.bench import print_map_table
 
 
 def main(args) -> int:
@@ -177,10 +177,7 @@ def _print_kinect(res: dict) -> None:
         o, s_ = r["ate"].get("odometry"), r["ate"].get("slam")
         if o and s_:
             print(f"loop closure cuts the ATE RMSE by {100 * (1 - s_['rmse_m'] / o['rmse_m']):.0f} % (target >= 50 %)")
-        print(f"{'map':22s} {'Acc cm':>7s} {'Comp cm':>8s} {'C-L1 cm':>8s} {'CR %':>6s} {'F %':>6s}")
-        for k, m in r["recon"].items():
-            v = [m.get(c, float("nan")) for c in COLS]
-            print(f"{k:22s} {v[0]:7.2f} {v[1]:8.2f} {v[2]:8.2f} {v[3]:6.2f} {v[4]:6.2f}")
+        print_map_table(r["recon"], rule=False)
         if "GT poses" in r["recon"]:
             g = r["recon"]["GT poses"].get("chamfer_l1_cm", float("nan"))
             m = r["recon"]["slam (remapped)"].get("chamfer_l1_cm", float("nan"))
@@ -263,11 +260,8 @@ def _print(res: dict) -> None:
         if a:
             print(f"{name:22s} {100 * a['rmse_m']:8.2f} {100 * a['mean_m']:8.2f} {100 * a['max_m']:7.2f} "
                   f"{a['rot_rmse_deg']:8.3f}")
-    print(f"\n{'map':22s} {'Acc cm':>7s} {'Comp cm':>8s} {'C-L1 cm':>8s} {'CR %':>6s} {'F %':>6s}")
-    print("-" * 62)
-    for name, m in res["recon"].items():
-        v = [m.get(c, float("nan")) for c in COLS]
-        print(f"{name:22s} {v[0]:7.2f} {v[1]:8.2f} {v[2]:8.2f} {v[3]:6.2f} {v[4]:6.2f}")
+    print()
+    print_map_table(res["recon"])
     print(f"\nloops closed: {len(res['loops'])}")
     for lp in res["loops"]:
         print(f"  frame {lp['frame']:4d}: pose graph {lp['optimize_s']:.3f} s, remap {lp['keyframes_moved']} of "
