@@ -153,25 +153,41 @@ def screenshot(url: str, out: str, size=(1280, 800), budget_ms: int = 15000) -> 
     return subprocess.run(cmd, capture_output=True, text=True, timeout=240)
 
 
-@pytest.mark.skipif(chromium() is None, reason="chromium is not installed (make sysdeps, or apt-get install chromium)")
-def test_viewer_in_headless_chromium_shows_the_run(small_run, tmp_path):
+def _canvas(path: str) -> np.ndarray:
+    """The 3D canvas of a viewer screenshot (left of viser's control panel), as int RGB."""
     from PIL import Image
 
+    img = np.asarray(Image.open(path).convert("RGB")).astype(int)
+    assert img.shape[:2] == (800, 1280)
+    return img[150:750, 100:900]
+
+
+def _drawn(canvas: np.ndarray) -> bool:
+    """Whether the scene was drawn at all: an empty page is a handful of grey shades."""
+    return len(np.unique(canvas.reshape(-1, 3), axis=0)) > 50
+
+
+@pytest.mark.skipif(chromium() is None, reason="chromium is not installed (make sysdeps, or apt-get install chromium)")
+def test_viewer_in_headless_chromium_shows_the_run(small_run, tmp_path):
     v, facts = open_run(small_run, port=free_port(), quiet=True)
     try:
         assert facts["faces"] > 0 and "error_mean_m" in facts     # the room has ground truth: error colours
-        out = str(tmp_path / "viewer.png")
-        r = screenshot(f"http://127.0.0.1:{v.port}/", out)
-        assert r.returncode == 0 and os.path.isfile(out), r.stderr[-2000:]
+        # On a busy CI machine the page can be captured before the websocket has delivered the scene (a
+        # blank grey canvas). That is the browser's timing, not the viewer: try again with a longer budget;
+        # the assertions below still require the mesh once the page has drawn.
+        for attempt, budget_ms in enumerate((15000, 30000, 60000)):
+            out = str(tmp_path / f"viewer{attempt}.png")
+            r = screenshot(f"http://127.0.0.1:{v.port}/", out, budget_ms=budget_ms)
+            assert r.returncode == 0 and os.path.isfile(out), r.stderr[-2000:]
+            canvas = _canvas(out)
+            if _drawn(canvas):
+                break
     finally:
         v.close()
-    img = np.asarray(Image.open(out).convert("RGB")).astype(int)
-    assert img.shape[:2] == (800, 1280)
-    # the 3D canvas (left of viser's control panel): not one colour, and the mesh covers part of it
-    canvas = img[150:750, 100:900]
+    assert _drawn(canvas), "three screenshots showed an empty canvas"
+    # the mesh covers part of the canvas
     background = np.median(np.concatenate([canvas[:5].reshape(-1, 3), canvas[-5:].reshape(-1, 3)]), axis=0)
     differs = np.abs(canvas - background).sum(-1) > 30
-    assert len(np.unique(canvas.reshape(-1, 3), axis=0)) > 50
     assert differs.mean() > 0.05, f"only {100 * differs.mean():.2f} % of the canvas differs from the background"
     # error-coloured mesh: some pixels are clearly bluish/greenish (not grey UI)
     sat = canvas.max(-1) - canvas.min(-1)
