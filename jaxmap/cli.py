@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=10_000_000, help="points sampled on the cropped mesh (SHINE: 10M)")
     p.add_argument("--no-floor", action="store_true",
                    help="skip the protocol floor (the GT mesh evaluated as the prediction, under 'floor')")
+    p.add_argument("--no-ghost", action="store_true",
+                   help="skip the ghost area (predicted surface where only moving objects were; sequences with "
+                        "moving_objects.json or pedestrians.json)")
 
     p = sub.add_parser("baseline", help="classical baselines on the same data")
     p.add_argument("method", choices=["tsdf"])
@@ -224,7 +227,8 @@ def _dispatch(args) -> int:
             output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
         m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
                                cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
-                               n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor)
+                               n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor,
+                               ghost=not args.no_ghost)
         print(format_metrics(m, "mesh"))
         if args.json_out:
             with open(args.json_out, "w") as f:

@@ -33,6 +33,13 @@ misplaced surface. ``protocol="surface"`` (``jaxmap eval --protocol surface``) a
 surface-to-surface figure as an extra field, ``completion_surface_cm``: each kept GT point's distance to
 the predicted *mesh* (open3d's BVH distance, clamped at 2 m), which has no sampling floor.
 
+Beside the protocol (it drops predicted points farther than 0.2 m from the GT, so floaters and ghost
+surfaces are invisible to it) every metrics dict also has pred_far_share (% of the down-sampled predicted
+points so dropped), precision_all and f_score_all (precision and F-score with every predicted point
+counted, far ones as misses). When a sequence has moving objects (:mod:`jaxmap.moving`), the observed
+region comes from static hits only and :func:`evaluate_mesh_file` adds ghost_area_m2: the predicted
+surface (m^2, per kind) inside space only moving objects occupied, farther than 0.15 m from the static GT.
+
 This module imports numpy at import time only (scipy, trimesh and open3d lazily), so it runs on
 machines without open3d; open3d is only used for ``completion_surface_cm``.
 """
@@ -238,7 +245,11 @@ def voxel_down_sample(points, voxel_m: float, origin=None) -> np.ndarray:
 def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m: float = ACC_TRUNCATION_M,
                      comp_truncation_m: float = COMP_TRUNCATION_M) -> dict:
     """Step 4 of the protocol on the down-sampled point sets: pred_ds [P,3], gt_ds [G,3] -> the dict of
-    METRIC_KEYS plus n_pred_far (predicted points dropped as >= acc_truncation_m from GT).
+    METRIC_KEYS plus n_pred_far (predicted points dropped as >= acc_truncation_m from GT) and, beside the
+    protocol (which cannot see what it drops: floaters, ghost surfaces), pred_far_share = the dropped
+    points' share of pred_ds (%), precision_all = % of ALL of pred_ds closer than threshold_m to the GT
+    (far points count as misses) and f_score_all = 2 P_all R / (P_all + R). Without far points
+    precision_all == precision and f_score_all == f_score.
 
     n_pred counts the predicted points that entered Accuracy / Precision, n_gt the GT points. No
     predicted point (or none within acc_truncation_m) gives an infinite accuracy and zero precision."""
@@ -248,6 +259,7 @@ def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m:
     gt = _as_points(gt_ds, "gt_points")
     d_p = _nn_dist(gt, pred)                  # pred -> nearest GT (accuracy, precision)
     near = d_p < acc_truncation_m
+    n_hit_all = int(np.sum(d_p < threshold_m))  # every predicted point, no drop (precision_all)
     d_p = d_p[near]
     d_r = np.minimum(_nn_dist(pred, gt), comp_truncation_m)  # GT -> nearest pred (completion, recall)
     acc = float(d_p.mean()) * 100.0 if len(d_p) else math.inf
@@ -255,6 +267,11 @@ def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m:
     precision = float(np.mean(d_p < threshold_m)) * 100.0 if len(d_p) else 0.0
     recall = float(np.mean(d_r < threshold_m)) * 100.0 if len(d_r) else 0.0
     f = 2.0 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    # beside the protocol: the far points it drops (floaters, ghost surfaces) counted as misses
+    n_far = int(len(near) - near.sum())
+    far_share = 100.0 * n_far / len(pred) if len(pred) else 0.0
+    precision_all = 100.0 * n_hit_all / len(pred) if len(pred) else 0.0
+    f_all = 2.0 * precision_all * recall / (precision_all + recall) if precision_all + recall > 0 else 0.0
     if len(pred) == 0:
         log.warning("no predicted point inside the GT bounding box; accuracy is infinite")
     return {
@@ -268,7 +285,10 @@ def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m:
         "n_pred": int(near.sum()),
         "n_gt": int(len(gt)),
         "protocol": PROTOCOL,
-        "n_pred_far": int(len(near) - near.sum()),
+        "n_pred_far": n_far,
+        "pred_far_share": round(far_share, 3),
+        "precision_all": round(precision_all, 3),
+        "f_score_all": round(f_all, 3),
     }
 
 
@@ -485,8 +505,8 @@ def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
 
 def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: int | None = None,
                        progress: bool = False, begin_frame: int = 0, end_frame: int = -1,
-                       every_frame: int = 1, min_range_m: float = 0.0,
-                       max_range_m: float = -1.0) -> tuple[np.ndarray, np.ndarray]:
+                       every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0,
+                       exclude_moving: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """All scan points of a sequence in the world frame, thinned to one per voxel_m voxel, and the sensor
     positions (pose translations of every frame). Returns (observed [O,3] float64, sensors [S,3] float64).
 
@@ -494,10 +514,16 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
     positions are still returned). begin_frame/end_frame/every_frame: the frames a run mapped.
     min_range_m/max_range_m (> 0): keep only scan points in that range of their sensor, i.e. what a
     mapper that crops its input saw (GT seen only from farther away cannot be reconstructed by it).
+    exclude_moving: when the sequence has moving objects (:func:`jaxmap.moving.load_moving_objects`), the
+    scan points of frame i inside frame i's boxes (grown by jaxmap.moving.GHOST_INFLATE_M) are left out:
+    the observed region comes from static hits only (the boxes are indexed by the real frame number).
     """
     from jaxmap.geometry import transform_points
     from jaxmap.io import open_sequence
 
+    from jaxmap.moving import GHOST_INFLATE_M, inside_boxes, load_moving_objects
+
+    moving = load_moving_objects(data_dir) if exclude_moving else None
     sel = dict(begin_frame=begin_frame, end_frame=end_frame)
     seq = open_sequence(data_dir, every_frame=every_frame, **sel)
     poses = np.asarray(seq.poses, dtype=np.float64)
@@ -520,6 +546,10 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
         if len(pts) == 0:
             continue
         w = transform_points(np.asarray(frame.pose, dtype=np.float64), pts)
+        if moving is not None:
+            w = w[~inside_boxes(w, moving.boxes_at(frame.index), GHOST_INFLATE_M)]
+            if len(w) == 0:
+                continue
         chunks.append(voxel_thin(w, voxel_m))
         pending += len(chunks[-1])
         if len(chunks) > 1 and pending > 4_000_000:
@@ -565,7 +595,7 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
                        eval_radius_m: float = -1.0, n_samples: int = N_SAMPLES,
                        max_frames_for_culling: int | None = None, begin_frame: int = 0, end_frame: int = -1,
                        every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0,
-                       floor: bool = False, protocol: str = PROTOCOL, seed: int = 0) -> dict:
+                       floor: bool = False, protocol: str = PROTOCOL, seed: int = 0, ghost: bool = True) -> dict:
     """Metrics of a mesh file against a sequence directory's ground truth (what `jaxmap eval` prints).
 
     Reads the mesh (PLY/OBJ/... via trimesh), ``data_dir/gt_points.ply`` (GT surface points, world frame,
@@ -578,6 +608,12 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
     :func:`signed_error_by_class`) when the GT has classes, "completion_surface_cm" with
     protocol="surface", and with floor=True "floor": the same protocol with ``gt_mesh.ply`` as the
     prediction (:func:`protocol_floor`; left out with a warning when the data has no GT mesh).
+
+    When the sequence has moving objects (moving_objects.json or pedestrians.json, :mod:`jaxmap.moving`),
+    the observed points come from static hits only (:func:`observed_points_of`), and with ghost=True the
+    result has "ghost_area_m2" {kind: m^2, ..., "total": m^2}: the area of the whole predicted mesh (not
+    cropped) inside the union of the boxes of the selected frames grown by 0.1 m and farther than 0.15 m
+    from every GT point (:func:`jaxmap.moving.ghost_area`); the floor gets one too (~0 for a sound GT).
     """
     if protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
@@ -603,6 +639,11 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
     m, pred = _evaluate_culled(v, f, gt, **kw)
     if protocol == "surface":
         m.update(_surface_fields(v, f, gt, COMP_TRUNCATION_M, DOWN_SAMPLE_M))
+    ghost_boxes = _ghost_boxes(data_dir, begin_frame, end_frame, every_frame) if ghost else None
+    if ghost_boxes is not None:
+        from jaxmap.moving import ghost_area
+
+        m["ghost_area_m2"] = ghost_area(v, f, gtd["points"], ghost_boxes)
     has_classes = gtd["classes"] is not None and gtd["normals"] is not None and gtd["class_names"]
     if has_classes:
         m["signed_error_cm"] = signed_error_by_class(pred, gt, gtd["normals"][idx], gtd["classes"][idx],
@@ -614,10 +655,15 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
             key = _floor_key(data_dir, gtd, kw, cull_distance_m=cull_distance_m, eval_radius_m=eval_radius_m,
                              max_frames_for_culling=max_frames_for_culling, begin_frame=begin_frame,
                              end_frame=end_frame, every_frame=every_frame, min_range_m=min_range_m,
-                             max_range_m=max_range_m)
+                             max_range_m=max_range_m, ghost=ghost_boxes is not None)
             fm = _floor_cache(data_dir).get(key)
             if fm is None:
-                fm, fpred = _evaluate_culled(*subdivide_mesh(*_mesh_arrays(gtd["mesh"])), gt, **kw)
+                fv, ff = subdivide_mesh(*_mesh_arrays(gtd["mesh"]))
+                fm, fpred = _evaluate_culled(fv, ff, gt, **kw)
+                if ghost_boxes is not None:
+                    from jaxmap.moving import ghost_area
+
+                    fm["ghost_area_m2"] = ghost_area(fv, ff, gtd["points"], ghost_boxes)
                 if has_classes:
                     fm["signed_error_cm"] = signed_error_by_class(fpred, gt, gtd["normals"][idx],
                                                                   gtd["classes"][idx], gtd["class_names"])
@@ -629,6 +675,19 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
 FLOOR_CACHE = ".jaxmap_floor_cache.json"
 
 
+def _ghost_boxes(data_dir: str, begin_frame: int, end_frame: int, every_frame: int):
+    """The moving objects' boxes of the selected frames (real frame numbers), or None when the sequence
+    has no moving objects."""
+    from jaxmap.io import open_sequence
+    from jaxmap.moving import load_moving_objects
+
+    moving = load_moving_objects(data_dir)
+    if moving is None:
+        return None
+    seq = open_sequence(data_dir, begin_frame=begin_frame, end_frame=end_frame, every_frame=every_frame)
+    return moving.boxes_of_frames(int(i) for i in seq.indices)
+
+
 def _floor_key(data_dir: str, gtd: dict, kw: dict, **selection) -> str:
     """What the floor depends on: the GT files (size and mtime), the scans' directory listing time and
     every protocol setting. The floor of a scene costs a full evaluation (minutes at 10M samples) and
@@ -636,7 +695,10 @@ def _floor_key(data_dir: str, gtd: dict, kw: dict, **selection) -> str:
     import hashlib
     import json
 
-    files = [os.path.join(data_dir, "gt_points.ply"), gtd["mesh"], os.path.join(data_dir, "poses.txt")]
+    from jaxmap.moving import moving_objects_path
+
+    files = [os.path.join(data_dir, "gt_points.ply"), gtd["mesh"], os.path.join(data_dir, "poses.txt"),
+             moving_objects_path(data_dir)]  # (moving objects: static-only observations, ghost area)
     stat = [(os.path.basename(f), os.path.getsize(f), os.path.getmtime(f)) for f in files if f and os.path.isfile(f)]
     blob = json.dumps({"files": stat, "kw": kw, "sel": selection, "protocol": PROTOCOL}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]
@@ -669,14 +731,25 @@ def _floor_cache_put(data_dir: str, key: str, floor_metrics: dict) -> None:
 
 def format_metrics(m: dict, name: str = "mesh") -> str:
     """A small table of a metrics dict of :func:`evaluate_mesh_file`: the floor row first (when
-    present), then the mesh, then the signed error per class (cm, mean / median / points)."""
-    head = f"{'':<8}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>8}{'F %':>8}   (protocol {m.get('protocol')}, " \
-           f"threshold {m.get('threshold_m')} m)"
+    present), then the mesh (the protocol's figures, then pred_far_share, precision_all and f_score_all),
+    the ghost area per kind (when the sequence has moving objects), then the signed error per class (cm,
+    mean / median / points). Older dicts without the extra keys print nan there."""
+    head = f"{'':<8}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>8}{'F %':>8}" \
+           f"{'far %':>8}{'P all %':>9}{'F all %':>9}   (protocol {m.get('protocol')}, " \
+           f"threshold {m.get('threshold_m')} m; far / all: beside the protocol, far points not dropped)"
     rows = [head]
+    na = float("nan")
     for label, r in (("floor", m.get("floor")), (name, m)):
         if r:
             rows.append(f"{label:<8}{r['accuracy_cm']:>8.2f}{r['completion_cm']:>8.2f}{r['chamfer_l1_cm']:>8.2f}"
-                        f"{r['completion_ratio']:>8.2f}{r['f_score']:>8.2f}")
+                        f"{r['completion_ratio']:>8.2f}{r['f_score']:>8.2f}{r.get('pred_far_share', na):>8.2f}"
+                        f"{r.get('precision_all', na):>9.2f}{r.get('f_score_all', na):>9.2f}")
+    for label, r in ((name, m), ("floor", m.get("floor"))):
+        g = (r or {}).get("ghost_area_m2")
+        if g:
+            parts = ", ".join(f"{k} {v:.2f}" for k, v in g.items())
+            rows.append(f"ghost surface (m^2){'' if label == name else ', floor'}: {parts} (predicted surface "
+                        "inside space only moving objects occupied, > 0.15 m from the static GT)")
     se = m.get("signed_error_cm")
     if se:
         rows.append("signed error per class (cm, + = outside / above the GT surface): " + ", ".join(

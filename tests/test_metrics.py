@@ -9,7 +9,7 @@ import pytest
 import trimesh
 
 from jaxmap.errors import DataError
-from jaxmap.metrics import (METRIC_KEYS, crop_mesh, evaluate, evaluate_mesh, evaluate_mesh_file, protocol_floor,
+from jaxmap.metrics import (METRIC_KEYS, crop_box, crop_mesh, evaluate, evaluate_mesh, evaluate_mesh_file, protocol_floor,
                             sample_mesh, sample_points_uniformly, signed_error_by_class, voxel_down_sample)
 
 
@@ -276,3 +276,42 @@ def test_small_city_floor_and_signed_error(small_city, tmp_path, capsys):
         assert m["signed_error_cm"][c]["mean_cm"] == pytest.approx(-2.0, abs=0.3), m["signed_error_cm"]
         assert abs(fl["signed_error_cm"][c]["mean_cm"]) < 0.3, fl["signed_error_cm"]
     assert set(m["signed_error_cm"]) >= {"road", "sidewalk", "building", "car"}
+
+
+def test_far_share_and_precision_without_the_drop():
+    """A floater > 0.2 m from the GT is invisible to the protocol's accuracy and precision; pred_far_share is
+    its share of the down-sampled predicted points and precision_all / f_score_all count it as misses."""
+    from jaxmap.metrics import format_metrics
+
+    rng = np.random.default_rng(3)
+    _, gt = handmade_case(rng)
+    pred = gt + rng.normal(0, 0.01, gt.shape)
+    clean = evaluate(pred, gt, threshold_m=0.05)
+    assert clean["n_pred_far"] == 0 and clean["pred_far_share"] == 0.0
+    assert clean["precision_all"] == clean["precision"] and clean["f_score_all"] == clean["f_score"]
+    # a 30 cm x 30 cm x 20 cm blob floating in the middle of the GT box, > 0.3 m from the ground and the wall
+    floater = rng.uniform([0.8, 0.5, 0.35], [1.1, 0.8, 0.55], (1000, 3))
+    both = np.concatenate([pred, floater])
+    m = evaluate(both, gt, threshold_m=0.05)
+    lo, hi = crop_box(gt)
+    ds = voxel_down_sample(both[np.all((both >= lo) & (both <= hi), axis=1)], 0.02)  # evaluate's crop and grid
+    in_floater = (ds[:, 2] > 0.3) & (ds[:, 1] < 1.3)  # (the wall stands at y = 1.5)
+    share = 100 * np.mean(in_floater)
+    assert 1.0 < share < 30.0
+    assert m["pred_far_share"] == pytest.approx(share, abs=1e-3)
+    assert m["n_pred_far"] == int(np.sum(in_floater))
+    # the protocol's own figures do not move; the ones without the drop do
+    for k in ("accuracy_cm", "precision", "f_score", "completion_ratio"):
+        assert m[k] == pytest.approx(clean[k], abs=0.05), k
+    assert m["precision_all"] < m["precision"] - 1.0 and m["f_score_all"] < m["f_score"]
+    assert m["precision_all"] == pytest.approx(m["precision"] * (1 - share / 100), abs=1e-2)
+    r = m["completion_ratio"]
+    assert m["f_score_all"] == pytest.approx(2 * m["precision_all"] * r / (m["precision_all"] + r), abs=1e-2)
+    out = format_metrics(dict(m, floor=clean))
+    assert "far %" in out and "P all %" in out and "F all %" in out
+    row = out.splitlines()[2].split()
+    assert row[0] == "mesh" and float(row[6]) == pytest.approx(m["pred_far_share"], abs=0.01)
+    assert float(row[7]) == pytest.approx(m["precision_all"], abs=0.01)
+    assert "ghost surface" not in out
+    g = format_metrics(dict(m, ghost_area_m2={"car": 3.25, "pedestrian": 0.5, "total": 3.75}))
+    assert "ghost surface (m^2): car 3.25, pedestrian 0.50, total 3.75" in g
