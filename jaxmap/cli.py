@@ -52,6 +52,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--layout", choices=["grid", "suburb"], default="grid",
                    help="city: the street grid (default) or a curved ring boulevard with detached houses")
     p.add_argument("--beams", type=int, default=None, help="city: LiDAR beams (default per preset: 64, small 32)")
+    p.add_argument("--traffic", type=int, default=0, metavar="N",
+                   help="city: N moving objects in the scans, never in the GT (~2/3 cars driving the lanes at 5-12 m/s "
+                        "ahead / oncoming / overtaking, the rest pedestrians on the sidewalks and crossings); "
+                        "per-frame boxes in moving_objects.json; grid and suburb layouts, not --long")
+    p.add_argument("--realistic", nargs="?", const="all", default=None, metavar="LIST",
+                   help="city: real spinning-LiDAR artifacts, all (no LIST) or a comma list of: mixed (mixed pixels: "
+                        "at a > 0.3 m azimuth range jump, p = 0.5, a range uniform between foreground and background), "
+                        "dropout (lost returns at grazing incidence, p = clip(1 - |cos|/0.2, 0, 1) * 0.8, and on dark "
+                        "surfaces, p = 0.5-0.9 rising with range; intensity = reflectivity), outliers (1 in 2000 "
+                        "returns at a range uniform in 0.5-50 m), beam_offsets (a constant N(0, 1 cm) range offset "
+                        "per beam)")
 
     p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
     p.add_argument("mesh")
@@ -213,8 +224,12 @@ def _dispatch(args) -> int:
             kw["layout"] = args.layout
             if args.beams is not None:
                 kw["beams"] = args.beams
-        elif args.layout != "grid" or args.beams is not None:
-            raise SystemExit("jaxmap synth: --layout and --beams are for the city scene")
+            if args.traffic:
+                kw["traffic"] = args.traffic
+            if args.realistic is not None:
+                kw["realistic"] = args.realistic
+        elif args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None:
+            raise SystemExit("jaxmap synth: --layout, --beams, --traffic and --realistic are for the city scene")
         output_dir(args.out)
         stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
         print(json.dumps(stats))

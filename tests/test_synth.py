@@ -366,3 +366,156 @@ def test_suburb_layout(tmp_path, small_city):
         generate_city(tmp_path / "x", layout="ring")
     with pytest.raises(ValueError, match="long"):
         generate_city(tmp_path / "x", layout="suburb", long=True)
+
+
+# ------------------------------------------------------------------------------------------------
+# traffic (moving objects, never in the GT) and real-sensor artifacts
+# ------------------------------------------------------------------------------------------------
+
+
+def _boxes_contain(poses, size, pts, grow=0.0, z_margin=0.0):
+    """Mask of pts [N,3] inside the box (x, y, z_base, yaw) of size (l, w, h), grown by `grow` metres."""
+    x, y, z, yaw = poses
+    l, w, h = size
+    d = pts[:, :2] - (x, y)
+    a = d[:, 0] * np.cos(yaw) + d[:, 1] * np.sin(yaw)
+    b = -d[:, 0] * np.sin(yaw) + d[:, 1] * np.cos(yaw)
+    return ((np.abs(a) <= l / 2 + grow) & (np.abs(b) <= w / 2 + grow) & (pts[:, 2] >= z + z_margin - grow)
+            & (pts[:, 2] <= z + h + grow))
+
+
+def test_city_traffic(tmp_path):
+    """--traffic: cars on the lanes and pedestrians on the sidewalks, in the scans, never in the GT; the static
+    scene and its GT are the same files as without traffic."""
+    from jaxmap.cli import main
+
+    nf = 70  # ~1 m apart on the small loop, as the default's 130 frames
+    generate_city(tmp_path / "t", seed=0, small=True, n_frames=nf, traffic=9)
+    generate_city(tmp_path / "p", seed=0, small=True, n_frames=nf)
+    ht, hp = hash_tree(tmp_path / "t"), hash_tree(tmp_path / "p")
+    for name in ("gt_mesh.ply", "gt_points.ply", "poses.txt", "calib.txt"):
+        assert ht[name] == hp[name], name
+    assert "moving_objects.json" not in hp and ht["velodyne/000000.bin"] != hp["velodyne/000000.bin"]
+    meta, meta_p = (json.loads((tmp_path / k / "meta.json").read_text()) for k in "tp")
+    assert meta["traffic"]["cars"] >= 4 and meta["traffic"]["pedestrians"] == 3
+    assert "traffic" not in meta_p and "moving_points_share" not in meta_p
+    assert meta["gt"] == meta_p["gt"] and meta["objects"] == meta_p["objects"]
+    assert 0.01 < meta["moving_points_share"] < 0.3
+    mo = json.loads((tmp_path / "t" / "moving_objects.json").read_text())
+    assert mo["format"] == "jaxmap moving objects v1" and mo["frames"] == nf
+    assert [o["id"] for o in mo["objects"]] == list(range(len(mo["objects"])))
+    assert sum(o["kind"] == "car" for o in mo["objects"]) == meta["traffic"]["cars"]
+    spacing = meta["trajectory"]["frame_spacing_m"]
+    seq = open_sequence(tmp_path / "t")
+    sensor = seq.poses[:, :3, 3]
+    gt = read_points_ply(tmp_path / "t" / "gt_points.ply").astype(np.float64)
+    scans = [transform_points(f.pose, f.points.astype(np.float64)) for f in seq]
+    hits = np.zeros(nf, int)
+    for o in mo["objects"]:
+        P = np.array(o["poses"], dtype=np.float64)
+        assert P.shape == (nf, 4) and np.all(np.abs(P[:, 3]) <= np.pi + 1e-4)
+        step = np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1) / spacing
+        l, w, h = o["size_xyz_m"]
+        if o["kind"] == "car":
+            assert 3.9 < l < 4.5 and 1.65 < w < 1.85 and 1.35 < h < 1.65 and np.all(P[:, 2] == 0)
+            assert step.min() > 0.5 and step.max() < 1.2, (step.min(), step.max())
+            # never on the sensor; in its line of travel (laterally within w/2) always >= 8 m away
+            rel = sensor[:, :2] - P[:, :2]
+            fwd = rel[:, 0] * np.cos(P[:, 3]) + rel[:, 1] * np.sin(P[:, 3])
+            yaw_e = np.arctan2(seq.poses[:, 1, 0], seq.poses[:, 0, 0])
+            lat_e = -rel[:, 0] * np.sin(yaw_e) + rel[:, 1] * np.cos(yaw_e)
+            assert np.all((np.abs(fwd) > l / 2 + 0.1) | (np.abs(-rel[:, 0] * np.sin(P[:, 3]) + rel[:, 1]
+                                                              * np.cos(P[:, 3])) > w / 2 + 0.1))
+            assert np.all((np.abs(lat_e) > w / 2) | (np.linalg.norm(rel, axis=1) >= 8.0))
+        else:
+            assert o["kind"] == "pedestrian" and o["size_xyz_m"] == [0.5, 0.4, 1.75]
+            assert 0.12 < np.median(step) < 0.16 and step.max() < 0.16
+        for i in range(0, nf, 3):
+            # never in the GT (nor overlapping a parked car / building: their GT samples would lie inside)
+            assert not _boxes_contain(P[i], (l, w, h), gt, grow=-0.01, z_margin=0.03).any(), (o["id"], i)
+            hits[i] += _boxes_contain(P[i], (l, w, h), scans[i], grow=0.05).sum()
+    assert np.mean(hits[::3] > 0) > 0.8  # the scans see the moving boxes
+    # a CLI run writes the file; without traffic a stale file is removed; long refuses it
+    assert main(["synth", "city", "--small", "--frames", "2", "--traffic", "3", "--out", str(tmp_path / "t")]) == 0
+    assert len(json.loads((tmp_path / "t" / "moving_objects.json").read_text())["objects"][0]["poses"]) == 2
+    generate_city(tmp_path / "t", seed=0, small=True, n_frames=2)
+    assert not (tmp_path / "t" / "moving_objects.json").exists()
+    with pytest.raises(ValueError, match="traffic"):
+        generate_city(tmp_path / "x", long=True, traffic=3)
+
+
+def _grid_cells(points, beams=32, az=512):
+    """(beam, azimuth step) of each LiDAR-frame point [N,3] of the small preset's organised scan."""
+    from jaxmap.synth.city import ELEVATION_DEG
+
+    p = points.astype(np.float64)
+    el = np.rad2deg(np.arcsin(p[:, 2] / np.linalg.norm(p, axis=1)))
+    b = np.rint((el - ELEVATION_DEG[0]) / (ELEVATION_DEG[1] - ELEVATION_DEG[0]) * (beams - 1)).astype(int)
+    a = np.rint(np.arctan2(p[:, 1], p[:, 0]) % (2 * np.pi) / (2 * np.pi) * az).astype(int) % az
+    return b, a
+
+
+def _grid(seq, beams=32, az=512):
+    """The scans back on their organised beam x azimuth grid: [frames, beams, az] range (nan: no return)."""
+    R = np.full((len(seq), beams, az), np.nan)
+    for k, f in enumerate(seq):
+        b, a = _grid_cells(f.points, beams, az)
+        R[k, b, a] = np.linalg.norm(f.points.astype(np.float64), axis=1)
+    return R
+
+
+def test_city_realistic_artifacts(tmp_path):
+    from jaxmap.cli import main
+
+    kw = dict(seed=1, small=True, n_frames=2)
+    generate_city(tmp_path / "plain", **kw)
+    for m in ("mixed", "dropout", "outliers", "beam_offsets"):
+        generate_city(tmp_path / m, realistic=m, **kw)
+    h0 = hash_tree(tmp_path / "plain")
+    grids = {k: _grid(open_sequence(tmp_path / k)) for k in ("plain", "mixed", "dropout", "outliers", "beam_offsets")}
+    G0 = grids["plain"]
+    for m in ("mixed", "dropout", "outliers", "beam_offsets"):
+        h = hash_tree(tmp_path / m)
+        assert h["gt_points.ply"] == h0["gt_points.ply"] and h["poses.txt"] == h0["poses.txt"], m
+        assert json.loads((tmp_path / m / "meta.json").read_text())["sensor"]["realistic"] == [m]
+    assert "realistic" not in json.loads((tmp_path / "plain" / "meta.json").read_text())["sensor"]
+    # mixed: the same returns; about half of those at a > 0.3 m azimuth jump moved between fg and bg
+    G = grids["mixed"]
+    assert np.array_equal(np.isnan(G), np.isnan(G0))
+    changed = np.abs(G - G0) > 1e-4
+    lo = np.fmin(np.fmin(G0, np.roll(G0, 1, axis=2)), np.roll(G0, -1, axis=2))
+    hi = np.fmax(np.fmax(G0, np.roll(G0, 1, axis=2)), np.roll(G0, -1, axis=2))
+    assert changed.sum() > 200
+    assert np.all((G[changed] >= lo[changed] - 1e-3) & (G[changed] <= hi[changed] + 1e-3))
+    jump = np.fmax(np.abs(G0 - np.roll(G0, 1, axis=2)), np.abs(G0 - np.roll(G0, -1, axis=2))) > 0.35
+    assert 0.3 < changed[jump].mean() < 0.6 and changed[~jump & ~np.isnan(G0)].mean() < 0.01
+    # beam offsets: one constant offset per beam, the same in every frame, ~1 cm
+    D = grids["beam_offsets"] - G0
+    off = np.nanmedian(D, axis=(0, 2))
+    assert np.nanmax(np.abs(D - off[None, :, None])) < 1e-4
+    assert 0.004 < off.std() < 0.02 and len(np.unique(off.round(5))) > 20
+    # dropout: fewer returns, far more lost at grazing incidence (the plain intensity is |cos|)
+    valid0 = ~np.isnan(G0)
+    lost = np.isnan(grids["dropout"])[valid0]
+    cos0 = np.full(G0.shape, np.nan)  # the plain intensity (|cos| of the incidence) on the grid
+    for k, f in enumerate(open_sequence(tmp_path / "plain")):
+        b, a = _grid_cells(f.points)
+        cos0[k, b, a] = np.fromfile(tmp_path / "plain" / "velodyne" / f"{k:06d}.bin", np.float32).reshape(-1, 4)[:, 3]
+    c = cos0[valid0]
+    assert np.isnan(grids["dropout"]).sum() > np.isnan(G0).sum()
+    assert lost[c < 0.05].mean() > 0.5 and lost[c < 0.05].mean() > 2 * lost[c > 0.5].mean()
+    assert 0.05 < lost[c > 0.5].mean() < 0.5  # the dark surfaces
+    # outliers: ~1 in 2000 returns anywhere between 0.5 m and 50 m along their ray
+    Go = grids["outliers"]
+    moved = np.abs(Go - G0) > 1e-4
+    assert np.array_equal(np.isnan(Go), np.isnan(G0)) and 1 <= moved.sum() <= 5 * valid0.sum() / 2000
+    assert np.all((Go[moved] >= 0.5) & (Go[moved] <= 50.0))
+    # the CLI: all, or a list; unknown names refused
+    assert main(["synth", "city", "--small", "--frames", "1", "--realistic", "--out", str(tmp_path / "a")]) == 0
+    assert json.loads((tmp_path / "a" / "meta.json").read_text())["sensor"]["realistic"] == [
+        "mixed", "dropout", "outliers", "beam_offsets"]
+    assert main(["synth", "city", "--small", "--frames", "1", "--realistic", "dropout,mixed",
+                 "--out", str(tmp_path / "b")]) == 0
+    assert json.loads((tmp_path / "b" / "meta.json").read_text())["sensor"]["realistic"] == ["mixed", "dropout"]
+    with pytest.raises(ValueError, match="realistic"):
+        generate_city(tmp_path / "x", small=True, realistic="fog")

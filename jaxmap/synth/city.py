@@ -21,6 +21,30 @@ alternate ends; not closed), ~1.1 m per frame, so the area seen grows about line
                              + a uchar class per point: CITY_CLASSES), hidden surfaces removed
     meta.json                stats and parameters (deterministic: no timings)
     pedestrians.json         (only with pedestrians=True) per-frame pedestrian boxes
+    moving_objects.json      (only with traffic > 0) per-frame boxes of the moving objects:
+                             {"format": "jaxmap moving objects v1", "frames": F, "objects": [{"id", "kind":
+                             "car" | "pedestrian", "size_xyz_m": [l, w, h], "poses": [[x, y, z_base, yaw] or
+                             null per frame]}]}: centre (x, y) in the world frame, bottom z_base, top z_base + h,
+                             length l along yaw (radians about +z), width w across; 4 decimals
+
+Traffic (traffic=N, `jaxmap.synth.traffic`): N moving boxes in the scans, never in the ground truth: ~2/3
+cars on the drive's lanes (ahead in the sensor's lane >= 8 m away, oncoming, overtaking; 5-12 m/s with the
+ego at 10 m/s, a frame = spacing / 10 m/s, 0.1 s at the default's ~1 m) and pedestrians (1.3-1.5 m/s) on the
+sidewalks and (grid) across the side streets. Grid (default, small) and suburb layouts; not with long.
+
+Real-sensor artifacts (realistic=..., each switchable; "all" = every one), applied on the organised
+beams x azimuth grid of each frame before the invalid rays are dropped:
+    mixed         mixed pixels: where a return's range differs from its azimuth neighbour's (same beam) by
+                  more than MIXED_JUMP_M (0.3 m), with probability MIXED_P (0.5) the return gets a range
+                  uniform between the foreground and the background range
+    dropout       lost returns: at grazing incidence with probability clip(1 - |cos| / 0.2, 0, 1) * 0.8 and on
+                  dark surfaces (reflectivity < 0.15: seeded per object, ~60 % of the cars, ~20 % of the
+                  facades) with probability 0.5 + 0.4 * range / 50 m; the intensity written becomes
+                  reflectivity * (0.3 + 0.7 |cos|)
+    outliers      1 in OUTLIER_RATE (2000) returns gets a range uniform in [0.5 m, 50 m] along its ray
+    beam_offsets  a constant range offset per beam, N(0, 1 cm), fixed for the sequence
+noise_m adds its Gaussian noise after them, as without them. Every option draws from its own seed
+sequence, so a sequence without them is unchanged.
 
 Everything is deterministic from `seed`.
 """
@@ -37,6 +61,7 @@ import numpy as np
 from jaxmap.io.kitti import camera_poses_from_lidar, write_calib, write_poses
 from jaxmap.io.pointcloud import write_mesh_ply, write_points_ply, write_scan_bin
 from jaxmap.synth import common as C
+from jaxmap.synth import traffic as traffic_mod
 
 log = logging.getLogger("jaxmap")
 
@@ -113,6 +138,83 @@ CITY_CLASSES = ("road", "sidewalk", "curb", "building", "car", "vegetation", "po
 _KIND_CLASS = {"building": 3, "house": 3, "car": 4, "trunk": 5, "crown": 5, "hedge": 5, "pole": 6, "sign": 6,
                "fence": 7, "railing": 7}  # "ground": road / sidewalk / curb by its normal and height
 LAYOUTS = ("grid", "suburb")
+REALISTIC = ("mixed", "dropout", "outliers", "beam_offsets")
+MIXED_JUMP_M = 0.3
+MIXED_P = 0.5
+GRAZING_COS = 0.2
+GRAZING_P = 0.8
+DARK_REFLECTIVITY = 0.15
+OUTLIER_RATE = 2000
+BEAM_OFFSET_STD_M = 0.01
+
+
+def realistic_modes(realistic) -> tuple:
+    """The artifacts asked for, in REALISTIC order: "all" / True = all; a comma list or a sequence of names."""
+    if realistic is True:
+        return REALISTIC
+    if not realistic:
+        return ()
+    names = [n.strip() for n in realistic.split(",")] if isinstance(realistic, str) else [str(n) for n in realistic]
+    names = [n for n in names if n]
+    if "all" in names:
+        return REALISTIC
+    bad = [n for n in names if n not in REALISTIC]
+    if bad:
+        raise ValueError(f"unknown realistic option(s) {', '.join(bad)}; choose from all, {', '.join(REALISTIC)}")
+    return tuple(n for n in REALISTIC if n in names)
+
+
+def _reflectivity(kinds, seed: int, tag: int = 505) -> np.ndarray:
+    """A seeded reflectivity in (0, 1] per scene object (dark < DARK_REFLECTIVITY: ~60 % of the cars, ~20 %
+    of the facades)."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, tag]))
+    r = np.empty(len(kinds))
+    for k, kind in enumerate(kinds):
+        u, a = rng.random(), rng.uniform(0.04, 0.12)
+        if kind == "car":
+            r[k] = a if u < 0.6 else rng.uniform(0.3, 0.9)
+        elif kind in ("building", "house"):
+            r[k] = a if u < 0.2 else rng.uniform(0.25, 0.9)
+        elif kind == "ground":
+            r[k] = rng.uniform(0.2, 0.35)
+        else:
+            r[k] = rng.uniform(0.25, 0.7)
+    return r
+
+
+def _sensor_artifacts(t, cos_abs, refl, beams: int, azimuth_steps: int, modes, seed: int, i: int):
+    """The range-changing artifacts of `modes` (mixed, dropout, outliers) on the organised beam-major grid
+    t [beams*azimuth_steps] (inf: no return); lost returns become inf."""
+    t = t.copy()
+    ok = np.isfinite(t) & (t <= MAX_RANGE)
+    if "mixed" in modes:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 511, i]))
+        G, okg = t.reshape(beams, azimuth_steps), ok.reshape(beams, azimuth_steps)
+        best, other = np.zeros(G.shape), G.copy()
+        for shift in (1, -1):  # the azimuth neighbours (the scan wraps around)
+            Gn, okn = np.roll(G, shift, axis=1), np.roll(okg, shift, axis=1)
+            diff = np.where(okg & okn, np.abs(np.where(okn, Gn, 0.0) - np.where(okg, G, 0.0)), 0.0)
+            take = diff > best
+            best, other = np.where(take, diff, best), np.where(take, Gn, other)
+        u, w = rng.random(G.shape), rng.random(G.shape)
+        mix = (best > MIXED_JUMP_M) & (u < MIXED_P)
+        lo, hi = np.minimum(G[mix], other[mix]), np.maximum(G[mix], other[mix])
+        G = G.copy()
+        G[mix] = lo + w[mix] * (hi - lo)
+        t = G.reshape(-1)
+    if "dropout" in modes:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 512, i]))
+        p_graze = np.clip(1.0 - cos_abs / GRAZING_COS, 0.0, 1.0) * GRAZING_P
+        rng_frac = np.clip(np.where(ok, t, 0.0) / MAX_RANGE, 0.0, 1.0)
+        p_dark = np.where(refl < DARK_REFLECTIVITY, 0.5 + 0.4 * rng_frac, 0.0)
+        drop = ok & (rng.random(len(t)) < 1.0 - (1.0 - p_graze) * (1.0 - p_dark))
+        t[drop] = np.inf
+        ok &= ~drop
+    if "outliers" in modes:
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 513, i]))
+        out = ok & (rng.random(len(t)) < 1.0 / OUTLIER_RATE)
+        t[out] = rng.uniform(0.5, MAX_RANGE, size=int(out.sum()))
+    return t
 
 
 # ------------------------------------------------------------------------------------------------
@@ -654,7 +756,8 @@ def _pedestrian_mesh(peds):
 
 def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
                   noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
-                  pedestrians: bool = False, long: bool = False, layout: str = "grid") -> dict:
+                  pedestrians: bool = False, long: bool = False, layout: str = "grid", traffic: int = 0,
+                  realistic: str | tuple = ()) -> dict:
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
@@ -669,6 +772,10 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
                  of the drive) (in the scans, not in the ground truth).
     layout: "grid" (the street grid above, the default) or "suburb" (`jaxmap.synth.suburb`: a curved
             ring boulevard with detached houses, ~130 m non-rectangular loop; with small, a smaller ring).
+    traffic: N moving objects (~2/3 cars on the lanes, the rest pedestrians; `jaxmap.synth.traffic`) in the
+             scans, never in the ground truth; written to moving_objects.json (grid and suburb, not long).
+    realistic: real-sensor artifacts, "all" or any of REALISTIC ("mixed,dropout,outliers,beam_offsets"; see
+               the module docstring).
     The GT points (gt_points.ply) are samples at gt_density (1000 per m^2) of the static surfaces within
     1 m of an observation (any frame's scan, without noise or pedestrians), hidden surfaces removed, with
     normals and a class per point (CITY_CLASSES, names in meta.json "gt": "classes").
@@ -681,6 +788,12 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         raise ValueError(f"unknown city layout {layout!r}; choose from {', '.join(LAYOUTS)}")
     if layout != "grid" and long:
         raise ValueError("long is a grid preset; it does not combine with another layout")
+    traffic = int(traffic)
+    if traffic < 0:
+        raise ValueError("traffic must be >= 0")
+    if traffic and long:
+        raise ValueError("traffic is not available with long (the grid and suburb loops only)")
+    modes = realistic_modes(realistic)
     P = LONG if long else SMALL if small else DEFAULT
     if layout == "suburb":
         from jaxmap.synth import suburb
@@ -718,12 +831,23 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         peds = suburb.pedestrian_boxes(P, seed, n_frames, 0.15 * spacing)
     else:
         peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing, ped_block) if pedestrians else None
-    counts = []
+    movers = _traffic_plan(P, layout, seed, traffic, path, scene, n_frames, spacing) if traffic else []
+    refl_static = _reflectivity(scene.kinds, seed) if "dropout" in modes else None
+    if movers and refl_static is not None:
+        refl_movers = _reflectivity([o["kind"] for o in movers], seed, 506)
+    if "beam_offsets" in modes:
+        beam_off = np.random.default_rng(np.random.SeedSequence([seed, 514])).normal(0.0, BEAM_OFFSET_STD_M, beams)
+        ray_beam = np.repeat(np.arange(beams), azimuth_steps)
+    counts, moving_points = [], 0
     observed = _ObservedPoints(OBS_VOXEL_M)
     for i in range(n_frames):
         R, o = T_wl[i, :3, :3], T_wl[i, :3, 3]
         dirs_w = dirs_s @ R.T
-        t, nrm = caster.cast(o, dirs_w)
+        if refl_static is not None:
+            t, nrm, pid = caster.cast(o, dirs_w, return_ids=True)
+            refl = np.where(pid >= 0, refl_static[obj[np.maximum(pid, 0)]], 1.0)
+        else:
+            t, nrm = caster.cast(o, dirs_w)
         hit = np.isfinite(t) & (t <= MAX_RANGE)  # the static scene, noise free: what the GT must cover
         observed.add(o + dirs_w[hit] * t[hit, None])
         if peds is not None:
@@ -731,15 +855,35 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
             closer = tp < t
             t = np.where(closer, tp, t)
             nrm = np.where(closer[:, None], nrm_p, nrm)
+            if refl_static is not None:
+                refl = np.where(closer, 0.5, refl)
+        if movers:
+            mv, mf, owner = traffic_mod.frame_mesh(movers, i)
+            tm, nrm_m, pid_m = C.Raycaster(mv, mf).cast(o, dirs_w, return_ids=True)
+            on_mover = tm < t
+            t = np.where(on_mover, tm, t)
+            nrm = np.where(on_mover[:, None], nrm_m, nrm)
+            if refl_static is not None:
+                refl = np.where(on_mover, refl_movers[owner[np.maximum(pid_m, 0)]], refl)
+        if modes:
+            cos_abs = np.abs(np.einsum("ij,ij->i", nrm.astype(np.float64), dirs_w))
+            t = _sensor_artifacts(t, cos_abs, refl if refl_static is not None else None, beams, azimuth_steps,
+                                  modes, seed, i)
         valid = np.isfinite(t) & (t <= MAX_RANGE)
         t = t[valid]
+        if "beam_offsets" in modes:
+            t = np.maximum(t + beam_off[ray_beam[valid]], 0.0)
         if noise_m > 0:
             rng = np.random.default_rng(np.random.SeedSequence([seed, 303, i]))
             t = np.maximum(t + rng.normal(0.0, noise_m, size=t.shape), 0.0)
         pts = dirs_s[valid] * t[:, None]
         inten = np.abs(np.einsum("ij,ij->i", nrm[valid].astype(np.float64), dirs_w[valid]))
+        if refl_static is not None:
+            inten = refl[valid] * (0.3 + 0.7 * inten)
         write_scan_bin(os.path.join(scan_dir, f"{i:06d}.bin"), pts, np.clip(inten, 0.0, 1.0))
         counts.append(len(pts))
+        if movers:
+            moving_points += int(on_mover[valid].sum())
         if long and (i + 1) % 100 == 0:
             log.info("synth city: %d/%d frames (%.0f s)", i + 1, n_frames, time.perf_counter() - t_start)
     write_calib(os.path.join(out_dir, "calib.txt"), Tr)
@@ -752,6 +896,12 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
                                   for fr in peds]}, f)
     elif os.path.exists(ped_file):
         os.remove(ped_file)
+    mov_file = os.path.join(out_dir, "moving_objects.json")
+    if movers:
+        with open(mov_file, "w") as f:
+            json.dump(traffic_mod.to_json(movers, n_frames), f)
+    elif os.path.exists(mov_file):
+        os.remove(mov_file)
 
     # ---- ground truth
     write_mesh_ply(os.path.join(out_dir, "gt_mesh.ply"), V, F)
@@ -783,11 +933,64 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     }
     if long:
         meta["long"] = True
+    if traffic:
+        n_cars = sum(o["kind"] == "car" for o in movers)
+        meta["traffic"] = {"cars": n_cars, "pedestrians": len(movers) - n_cars}
+        meta["moving_points_share"] = round(moving_points / max(sum(counts), 1), 5)
+    if modes:
+        meta["sensor"]["realistic"] = list(modes)
     C.write_json(os.path.join(out_dir, "meta.json"), meta)
     elapsed = time.perf_counter() - t_start
     log.info("synth city (%s): %d frames, %.0f points/frame, %d GT points -> %s (%.1f s)", layout, n_frames,
              meta["points_per_frame"]["mean"], len(gt_pts), out_dir, elapsed)
     return dict(meta, elapsed_s=round(elapsed, 2), out_dir=out_dir)
+
+
+def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int, spacing: float) -> list:
+    """The moving objects of generate_city(traffic=n) (`jaxmap.synth.traffic.plan` on this layout's lanes
+    and sidewalks)."""
+    parked = traffic_mod._footprints_of(scene, "car")
+    ego_s = np.arange(n_frames) * spacing
+    half_car = 0.9  # the moving cars are <= 1.8 m wide
+    if layout == "suburb":
+        from jaxmap.synth import suburb
+
+        w = P.road_width / 2
+        b = w - 1.1 - 0.925 - 0.025  # the parked cars' inner edge (outer curb), a margin
+        lane_same, lane_opp = b - half_car, -w + 1.5 + half_car
+        loops, sides, crossings = [suburb.CurvePath(P, w + 1.3)], [], []
+        curb_z = lambda xy: np.full(len(xy), CURB_H)  # noqa: E731
+    else:
+        w = P.road_width / 2
+        b = w - 1.1 - 0.925 - 0.025  # parked cars on both curbs
+        lane_same, lane_opp = b - half_car, -(b - half_car)
+        xb, yb = _intervals(P)
+        d = P.ped_from_curb
+        loops = [LoopPath(xb[3] - d, yb[3] - d, 0.5)]  # (corners rounder than the walkers' 0.35 m offsets)
+        sides = [((xb[4] + d, yb[2] + d), (xb[4] + d, yb[3] - d)), ((xb[1] - d, yb[3] - d), (xb[1] - d, yb[2] + d)),
+                 ((xb[3] - d, yb[4] + d), (xb[2] + d, yb[4] + d)), ((xb[2] + d, yb[1] - d), (xb[3] - d, yb[1] - d))]
+        e = w + min(d, 1.5)
+        crossings = []
+        for sx in (1.0, -1.0):
+            for sy in (1.0, -1.0):
+                cx, cy = sx * P.street_x, sy * P.street_y
+                crossings.append(((cx - e, sy * (P.street_y + w + 0.5)), (cx + e, sy * (P.street_y + w + 0.5))))
+                crossings.append(((sx * (P.street_x + w + 0.5), cy - e), (sx * (P.street_x + w + 0.5), cy + e)))
+
+        def curb_z(xy):
+            i = np.searchsorted(xb, xy[:, 0]) - 1
+            j = np.searchsorted(yb, xy[:, 1]) - 1
+            return np.where((i % 2 == 0) & (j % 2 == 0), CURB_H, 0.0)
+    off = P.lane_offset
+    if layout == "suburb":
+        lat = (0.35, -0.35)  # (the loop runs counter-clockwise around the ring: right = outward)
+    else:  # the central block's walkers: two lines between the trees' trunks and the lots (right = to the curb)
+        near = P.tree_from_curb + 0.4
+        far = min(near + 0.5, P.sidewalk - 0.23)
+        lat = (P.ped_from_curb - near, P.ped_from_curb - far)
+    return traffic_mod.plan(n, seed, path, ego_s, spacing, lane_same=lane_same - off, lane_opposite=lane_opp - off,
+                            parked=parked, ped_paths=sides, ped_loops=loops, crossings=crossings, curb_z=curb_z,
+                            ped_loop_lat=lat)
 
 
 class _ObservedPoints:

@@ -294,13 +294,20 @@ class Raycaster:
             self.scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
                                      o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)))
 
-    def cast(self, origins, dirs):
+    def cast(self, origins, dirs, return_ids: bool = False):
+        """With return_ids=True also the hit triangle's index per ray [N] int64 (-1 where the ray misses)."""
         n = len(dirs)
         if self.empty:
-            return np.full(n, np.inf), np.zeros((n, 3), np.float32)
+            out = np.full(n, np.inf), np.zeros((n, 3), np.float32)
+            return out + (np.full(n, -1, np.int64),) if return_ids else out
         rays = np.concatenate([np.broadcast_to(origins, dirs.shape), dirs], axis=1).astype(np.float32)
         ans = self.scene.cast_rays(self._o3d.core.Tensor(rays))
-        return ans["t_hit"].numpy().astype(np.float64), ans["primitive_normals"].numpy()
+        t = ans["t_hit"].numpy().astype(np.float64)
+        if not return_ids:
+            return t, ans["primitive_normals"].numpy()
+        ids = ans["primitive_ids"].numpy().astype(np.int64)
+        ids[~np.isfinite(t) | (ids >= 2 ** 32 - 1)] = -1
+        return t, ans["primitive_normals"].numpy(), ids
 
 
 def point_triangle_distance(points, a, b, c) -> np.ndarray:
