@@ -50,6 +50,8 @@ class PreprocessConfig:
     max_z_m: float = 30.0            # upper height crop in the sensor frame
     vox_down_m: float = 0.05         # voxel downsample before sampling (0 = off)
     normal_knn: int = 20             # neighbours for PCA normals
+    outlier_mad: float = 0.0         # > 0: drop points whose range-scaled mean neighbour distance is this many
+                                     # robust std above the scan's median (mixed pixels, stray returns); 0 = off
 
 
 @dataclass(frozen=True)
@@ -60,6 +62,8 @@ class SamplingConfig:
     sigma_m: float = 0.05            # std of the Gaussian offset inside the band (~ range noise)
     free_sample_n: int = 3           # free-space samples per scan point, on the ray before the band
     free_band_m: float = 1.0         # free samples lie in the last free_band_m before the band
+    free_ray_n: int = 0              # more free samples per scan point, stratified along the whole ray
+                                     # (from preprocess.min_range_m to the band): they carve what moved
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
     free_label_mode: str = "projected"  # "projected": that label capped by the distance to the hit's
                                         # tangent plane; "truncation": the label as is (paper; ablation)
@@ -106,6 +110,10 @@ class WindowConfig:
                                      # window; "ring": the newest pairs (ablation)
     pairs_per_frame: int = 8         # at most this many of a frame's pairs offered to a voxel (0 = all)
     initial_blocks: int = 1 << 14    # blocks in the store at start (grown outside jit when full)
+    carve: bool = False              # free space along the ray replaces the stored pairs it contradicts
+                                     # (needs sampling.free_ray_n > 0): erases what moved away
+    carve_margin_m: float = 0.05     # a stored pair is contradicted when its label < free label - distance - this
+    carve_samples: int = 16384       # at most this many ray samples carve per frame (a fixed-size gather)
 
 
 @dataclass(frozen=True)
@@ -285,11 +293,13 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
 RULES: dict[type, dict[str, Rule]] = {
     DataConfig: {"kind": one_of(*DATA_KINDS), "begin_frame": at_least(0), "every_frame": at_least(1),
                  "path": NONEMPTY},
-    PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3)},
+    PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3),
+                       "outlier_mad": at_least(0.0)},
     SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),
-                     "free_sample_n": at_least(0), "free_band_m": at_least(0.0)},
+                     "free_sample_n": at_least(0), "free_band_m": at_least(0.0),
+                     "free_ray_n": at_least(0)},
     GridConfig: {"leaf_vox_size": above(0.0), "feature_levels": at_least(1), "feature_dim": at_least(1),
                  "feature_std": at_least(0.0), "max_load": strictly_within(0.0, 1.0)},
     DecoderConfig: {"hidden_dim": at_least(1), "hidden_layers": at_least(0)},
@@ -298,7 +308,8 @@ RULES: dict[type, dict[str, Rule]] = {
                   "weight_e": at_least(0.0), "freeze_after_frame": at_least(0)},
     WindowConfig: {"mode": one_of("voxel", "replay", "keyframe"), "keyframes": at_least(1),
                    "pairs_per_voxel": at_least(1), "initial_blocks": at_least(1),
-                   "block_policy": one_of("reservoir", "ring"), "pairs_per_frame": at_least(0)},
+                   "block_policy": one_of("reservoir", "ring"), "pairs_per_frame": at_least(0),
+                   "carve_margin_m": at_least(0.0), "carve_samples": at_least(1)},
     MeshConfig: {"resolution_m": above(0.0), "min_component_faces": at_least(0), "mask_level": at_least(0),
                  "min_leaf_corners": within(0, 8)},
     EvalConfig: {"threshold_m": above(0.0), "cull_distance_m": above(0.0), "n_samples": at_least(1)},

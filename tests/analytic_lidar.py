@@ -23,3 +23,31 @@ def pose_at(x: float, height: float = 1.7) -> np.ndarray:
     T = np.eye(4)
     T[0, 3], T[2, 3] = x, height
     return T
+
+
+def hall_scan(sensor_xyz, *, box=None, beams: int = 32, steps: int = 512, half_width: float = 6.0,
+              end_x: float = 9.0, max_range: float = 12.0) -> np.ndarray:
+    """Points [N,3] float32 in the sensor frame (axes as the world's) of a sensor at `sensor_xyz` in a
+    closed hall: the ground z=0, side walls y=+-half_width, end walls x=+-end_x, and optionally a box
+    `box = (x0, x1, y0, y1, height)` standing on the ground (world frame), which hides what is behind."""
+    o = np.asarray(sensor_xyz, np.float64)
+    az = np.linspace(-np.pi, np.pi, steps, endpoint=False)
+    el = np.deg2rad(np.linspace(-25, 10, beams))
+    A, E = np.meshgrid(az, el)
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    t = np.full(len(d), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.minimum(t, np.where(d[:, 2] < -1e-6, -o[2] / d[:, 2], np.inf))
+        for axis, half in ((1, half_width), (0, end_x)):
+            for side in (-1.0, 1.0):
+                tt = (side * half - o[axis]) / d[:, axis]
+                t = np.minimum(t, np.where(tt > 0, tt, np.inf))
+        if box is not None:  # slab test against the axis-aligned box
+            x0, x1, y0, y1, h = box
+            lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, h])
+            t1, t2 = (lo - o) / d, (hi - o) / d
+            near = np.nanmax(np.minimum(t1, t2), axis=1)
+            far = np.nanmin(np.maximum(t1, t2), axis=1)
+            t = np.minimum(t, np.where((near <= far) & (near > 0), near, np.inf))
+    ok = t < max_range
+    return (d[ok] * t[ok, None]).astype(np.float32)

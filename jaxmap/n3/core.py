@@ -62,10 +62,15 @@ class N3Static:
     trunc: float
     sigma: float
     n_surface: int
-    n_free: int
+    n_free: int                 # free samples in the band before the truncation region
+    n_ray: int                  # free samples along the whole ray
+    free_min_range: float       # where the ray's free samples start (metres from the sensor)
     free_band: float
     free_label: float
     free_label_mode: str
+    carve: bool                 # free-space ray samples replace the stored pairs they contradict
+    carve_margin: float
+    carve_samples: int
     iters: int
     hierarchical: bool
     nv: int
@@ -93,9 +98,11 @@ class N3Static:
         return cls(
             leaf=leaf, levels=g.feature_levels, feature_dim=g.feature_dim, hidden_dim=cfg.decoder.hidden_dim,
             hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
-            sigma=s.sigma_m, n_surface=s.surface_sample_n, n_free=s.free_sample_n, free_band=s.free_band_m,
+            sigma=s.sigma_m, n_surface=s.surface_sample_n, n_free=s.free_sample_n, n_ray=s.free_ray_n,
+            free_min_range=cfg.preprocess.min_range_m, free_band=s.free_band_m,
             free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
-            free_label_mode=s.free_label_mode,
+            free_label_mode=s.free_label_mode, carve=w.carve, carve_margin=w.carve_margin_m,
+            carve_samples=w.carve_samples,
             iters=t.iters, hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
             batch_size=t.batch_size, freeze_after_frame=t.freeze_after_frame, reset_adam=t.reset_adam_each_frame,
             window_mode=w.mode, keyframes=w.keyframes if w.mode == "keyframe" else 0,
@@ -166,6 +173,7 @@ class FrameStats(NamedTuple):
     window_blocks: jax.Array    # [] int32 blocks in the window holding pairs
     store_pairs: jax.Array      # [] int32 pairs held by the store
     free_dropped: jax.Array     # [] int32 free-space samples outside every allocated voxel (train nothing)
+    carved: jax.Array           # [] int32 stored pairs that this frame's free space contradicted and replaced
 
 
 class TrainStats(NamedTuple):
@@ -218,7 +226,7 @@ def capacities_for(static: N3Static, cfg) -> Capacities:
     pool_pairs = 0
     if static.uses_pool:  # the ablations: no blocks; the pool starts at ~16 frames' worth (a scan
         # brings about one point per window voxel) and doubles when full
-        blocks, pool_pairs = 16, _round_up(16 * window_voxels * (static.n_surface + static.n_free))
+        blocks, pool_pairs = 16, _round_up(16 * window_voxels * (static.n_surface + static.n_free + static.n_ray))
     return Capacities(voxel_slots=pow2(voxels / static.max_load), voxel_rows=voxels,
                       corner_slots=pow2(rows / static.max_load), feature_rows=rows,
                       store_blocks=blocks, pairs_per_block=cfg.window.pairs_per_voxel, pool_pairs=pool_pairs)
@@ -292,11 +300,12 @@ def origin_world(static: N3Static, state: N3State) -> np.ndarray:
 def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N3State, FrameStats]:
     """Put one scan into the map (one pass; see the module docstring for `ok` and retries)."""
     n = scan.points.shape[0]
-    ns, nf = static.n_surface, static.n_free
+    ns, nf = static.n_surface, static.n_free + static.n_ray   # nf: free samples of both kinds
     samples = sample_frame(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
-                           trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=nf,
+                           trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=static.n_free,
                            free_band=static.free_band, free_label=static.free_label,
-                           free_label_mode=static.free_label_mode)
+                           free_label_mode=static.free_label_mode, n_ray=static.n_ray,
+                           min_range=static.free_min_range)
     vox = gfeat.leaf_voxel(samples.points, static.leaf)                           # [N*(ns+nf), 3]
     vkeys = jnp.concatenate([vox, jnp.zeros_like(vox[:, :1])], -1).reshape(n, ns + nf, 4)
     valid = samples.valid.reshape(n, ns + nf)
@@ -330,9 +339,19 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
     # the decoder's empty-space output (counted in the stats, not silently lost).
     free_rows = hashing.lookup(voxels, vkeys[:, ns:].reshape(-1, 4)).reshape(n, nf)
     free_ok = valid[:, ns:] & (free_rows >= 0)
+    ray_ok = jnp.zeros((n, 0), bool)
+    if static.n_ray:
+        # A ray sample in a voxel this frame hits may pass centimetres from a surface that is not its
+        # own hit (a pole beside the ray), where its label (distance to its own hit's tangent plane)
+        # would lie: such samples are dropped. What moved away is hit by nobody any more.
+        v_cap = state.voxel_coord.shape[0]
+        hit_voxel = jnp.zeros((v_cap,), bool).at[jnp.where(surf_rows >= 0, surf_rows, v_cap)].set(True, mode="drop")
+        ray_ok = free_ok[:, static.n_free:] & ~hit_voxel[jnp.maximum(free_rows[:, static.n_free:], 0)]
+        free_ok = free_ok.at[:, static.n_free:].set(ray_ok)
     rows = jnp.concatenate([jnp.where(valid[:, :ns], surf_rows.reshape(n, ns), -1),
                             jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
     allowed = ~v_over & ~c_over & (pending == 0)
+    carved = jnp.zeros((), jnp.int32)
     center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
     if static.uses_pool:  # the replay / keyframe ablations: the frame's pairs go to the flat pool
         new_pool, pst = pool.update(state.pool, rows, samples.points, samples.labels, samples.surface,
@@ -347,6 +366,14 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         store = store.replace(window_ids=jnp.where(sst.ok, ids, state.store.window_ids),
                               window_n=jnp.where(sst.ok, n_win, state.store.window_n))
         new_pool, ok, needed, free = None, sst.ok, sst.blocks_needed, sst.blocks_free
+        if static.carve and static.n_ray:
+            lab = samples.labels.reshape(n, ns + nf)[:, ns + static.n_free:].reshape(-1)
+            pts = samples.points.reshape(n, ns + nf, 3)[:, ns + static.n_free:].reshape(-1, 3)
+            carved_store, carved = window.carve(
+                store, jnp.where(ray_ok, free_rows[:, static.n_free:], -1).reshape(-1), pts, lab,
+                ray_ok.reshape(-1) & sst.ok, state.frame, jax.random.fold_in(key, 2), margin=static.carve_margin,
+                max_samples=static.carve_samples)
+            store = carved_store
         pairs = window.total_pairs(store)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
                           voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool)
@@ -355,6 +382,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
         new_feature_rows=n_new_c, blocks_needed=needed, blocks_free=free, window_blocks=store.window_n,
         store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
+        carved=carved,
     )
     return state, stats
 

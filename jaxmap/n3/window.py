@@ -280,3 +280,46 @@ def frames_held_fraction(store: PairStore, ids, n, min_frames: int = 1):
 def total_pairs(store: PairStore):
     """[] int32: pairs held by the store (what the memory bound is about)."""
     return store.count.sum()
+
+
+def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, margin: float, max_samples: int):
+    """Free space replaces the stored pairs it contradicts (what moved away is erased, N3 Fig. 10).
+
+    A free-space sample y with an honest label l_y (a lower bound of its distance to every surface)
+    says f(y) >= l_y, so a 1-Lipschitz SDF has f(x) >= l_y - |x - y| everywhere. A pair (x, l) stored
+    by an earlier frame in y's block with l < l_y - |x - y| - margin cannot hold any more: the surface
+    it described is gone (a car that drove on). Each sample replaces the most contradicted such pair
+    of its block with itself (a free-space pair of this frame); pairs of the current frame are never
+    replaced. True surfaces are safe as long as free labels are honest (`sampling.free_label_mode`
+    projected, ray samples in voxels the frame hit dropped), `margin` covering the range noise.
+
+    voxel_rows: [M] int32 (-1: none); points: [M, 3] float32 map frame; labels: [M]; use: [M] bool;
+    frame: [] int32; key: PRNG key. At most `max_samples` of the usable samples carve per frame (a
+    fixed-size gather of [max_samples, P] pairs): those from a random start on, in scan order, so
+    that over frames every part of the scan carves.
+    Returns (store, [] int32 pairs replaced).
+    """
+    s, p = store.n_slots, store.block_size
+    v = store.slot_of_voxel.shape[0]
+    slot = jnp.where(use & (voxel_rows >= 0), store.slot_of_voxel[jnp.clip(voxel_rows, 0, v - 1)], -1)
+    total = slot.shape[0]
+    m = min(max_samples, total)
+    start = jax.random.randint(key, (), 0, total)
+    pick = nonzero_fixed(jnp.roll(slot >= 0, -start), m, total)                # [m], fill = out of range
+    real = pick < total
+    pick = (jnp.minimum(pick, total - 1) + start) % total
+    sl = jnp.where(real, slot[pick], 0)
+    y, ly = points[pick], labels[pick]                                         # [m, 3], [m]
+    blk = store.pairs[sl]                                                      # [m, P, 4]
+    d = jnp.linalg.norm(blk[..., :3] - y[:, None], axis=-1)                    # [m, P]
+    held = (jnp.arange(p)[None] < store.count[sl][:, None]) & (store.frame[sl] < frame)
+    excess = jnp.where(held, (ly[:, None] - d - margin) - blk[..., 3], 0.0)    # > 0: contradicted
+    j = jnp.argmax(excess, axis=1)
+    hit = real & (jnp.take_along_axis(excess, j[:, None], 1)[:, 0] > 0)
+    tgt = jnp.where(hit, sl, s)
+    new = store.replace(
+        pairs=store.pairs.at[tgt, j].set(jnp.concatenate([y, ly[:, None]], -1), mode="drop"),
+        surface=store.surface.at[tgt, j].set(False, mode="drop"),
+        frame=store.frame.at[tgt, j].set(frame, mode="drop"),
+    )
+    return new, jnp.sum(hit, dtype=jnp.int32)

@@ -1,0 +1,166 @@
+"""Free space that carves (N3 section III-B, Fig. 10), the loss's sign and sharpness, the frozen
+decoder, and free samples that land where the map has no voxel."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from analytic_lidar import corridor_scan, hall_scan, pose_at
+from jaxmap.config import load_config
+from jaxmap.n3 import core, scan, window
+from jaxmap.n3.loss import bce_loss
+from jaxmap.n3.mapper import N3Mapper
+from jaxmap.n3.sampling import sample_frame
+
+SMALL = ["train.iters=20", "train.nv=256", "train.np_per_voxel=8", "preprocess.max_range_m=12.0",
+         "preprocess.vox_down_m=0.1", "window.initial_blocks=4096", "mesh.min_component_faces=0"]
+BOX = (4.0, 6.0, -1.0, 1.0, 1.5)  # x0, x1, y0, y1, height: a car-sized box 6 m ahead of the sensor
+
+
+def _hall_with_a_box_that_leaves(extra, frames_with=5, frames_without=11):
+    """The sensor rolls towards the hall's end wall; the box stands in front of it for the first
+    frames, then is gone while the rays to the end wall keep crossing its place."""
+    m = N3Mapper(load_config("configs/city.yaml", SMALL + list(extra)))
+    for i in range(frames_with + frames_without):
+        x = -2.0 + 0.2 * i
+        m.add_frame(hall_scan((x, 0, 1.7), box=BOX if i < frames_with else None), pose_at(x))
+    rng = np.random.default_rng(0)
+    q = np.stack([rng.uniform(4.0, 4.6, 2000), rng.uniform(-0.8, 0.8, 2000), rng.uniform(0.4, 1.3, 2000)], 1)
+    sdf, valid = m.sdf(q)
+    mesh = m.mesh(0.1)
+    c = np.asarray(mesh.vertices)[np.asarray(mesh.faces)].mean(1)
+    in_box = np.all((c > [4.0, -0.9, 0.25]) & (c < [6.0, 0.9, 1.4]), axis=1)
+    return m, sdf[valid], int(in_box.sum()), mesh
+
+
+def test_free_space_along_the_ray_erases_a_box_that_left_and_keeps_the_walls():
+    """Measured (20 iterations, 5 frames with the box, 11 without): defaults 0 faces left in the box,
+    99 % of the SDF samples on its old front face > 5 cm; the pre-issue rule (free samples only in
+    the last metre before the band, `sampling.free_ray_n=0`) 535 faces and SDF < 0 there."""
+    m, sdf, faces_in_box, mesh = _hall_with_a_box_that_leaves([])
+    assert faces_in_box <= 10, faces_in_box
+    assert np.mean(sdf > 0.05) > 0.9, np.mean(sdf > 0.05)
+    assert sum(t["carved"] for t in m.timings) > 0
+    # the static hall is still there: the end wall x = 9 and the ground under the box's place
+    q = np.array([[8.95, y, z] for y in np.linspace(-3, 3, 7) for z in (0.5, 1.0, 1.5)]
+                 + [[x, y, 0.0] for x in (4.5, 5.0, 5.5) for y in (-0.5, 0.0, 0.5)])
+    s, v = m.sdf(q)
+    assert v.all() and np.all(np.abs(s - np.r_[np.full(21, 0.05), np.zeros(9)]) < 0.06), s
+
+    _, sdf_band, faces_band, _ = _hall_with_a_box_that_leaves(["sampling.free_ray_n=0", "window.carve=false"])
+    assert faces_band > 100, faces_band  # the old rule leaves the ghost: this scene tests something
+    assert np.mean(sdf_band > 0.05) < 0.2
+
+
+def test_carve_replaces_only_contradicted_pairs_of_earlier_frames():
+    store = window.create(4, 8, 16)
+    pairs = np.zeros((4, 8, 4), np.float32)
+    # block 0 (voxel row 3): a surface pair at the origin (label 0), a pair 10 cm away that is
+    # consistent with free space at y (label 0.25 >= 0.3 - 0.1 - margin), and a contradicted pair
+    # written by the current frame (kept: this frame's own observations do not carve each other).
+    pairs[0, 0] = [0.0, 0.0, 0.0, 0.0]
+    pairs[0, 1] = [0.15, 0.0, 0.0, 0.25]
+    pairs[0, 2] = [0.0, 0.02, 0.0, 0.0]
+    frame = np.full((4, 8), -1, np.int32)
+    frame[0, :3] = [1, 1, 7]
+    store = store.replace(pairs=jnp.asarray(pairs), frame=jnp.asarray(frame),
+                          count=jnp.asarray([3, 0, 0, 0], jnp.int32),
+                          voxel_of_slot=jnp.asarray([3, -1, -1, -1], jnp.int32),
+                          slot_of_voxel=jnp.full((16,), -1, jnp.int32).at[3].set(0))
+    y = jnp.asarray([[0.05, 0.0, 0.0], [0.05, 0.0, 0.0], [9.0, 9.0, 9.0]], jnp.float32)
+    lab = jnp.asarray([0.3, 0.3, 0.3], jnp.float32)
+    new, n = window.carve(store, jnp.asarray([3, -1, 5], jnp.int32), y, lab, jnp.ones(3, bool), jnp.int32(7),
+                          jax.random.PRNGKey(0), margin=0.05, max_samples=8)
+    assert int(n) == 1
+    p = np.asarray(new.pairs)
+    np.testing.assert_allclose(p[0, 0], [0.05, 0.0, 0.0, 0.3])            # replaced by the free sample
+    assert not bool(new.surface[0, 0]) and int(new.frame[0, 0]) == 7
+    np.testing.assert_array_equal(p[0, 1:3], pairs[0, 1:3])                # consistent / same frame: kept
+    np.testing.assert_array_equal(np.asarray(new.count), [3, 0, 0, 0])
+
+
+def test_bce_sign_and_sharpness_against_the_formula():
+    """L = BCE(sigmoid(f / beta), sigmoid(s / beta)) minus its floor, from the formula in float64:
+    a swapped label sign or another beta gives other values, and the gradient pulls f towards s."""
+    f = np.array([0.1, -0.05, 0.2, 0.0])
+    s = np.array([-0.1, -0.05, 0.05, 0.3])
+    beta = 0.1
+
+    def ref(f, s, beta):
+        sig = lambda x: 1.0 / (1.0 + np.exp(-x))  # noqa: E731
+        t, p = sig(s / beta), sig(f / beta)
+        per = -(t * np.log(p) + (1 - t) * np.log(1 - p))
+        floor = -(t * np.log(t) + (1 - t) * np.log(1 - t))
+        return np.mean(per - floor)
+
+    m = jnp.ones(4, bool)
+    got = float(bce_loss(jnp.asarray(f, jnp.float32), jnp.asarray(s, jnp.float32), beta, m))
+    assert abs(got - ref(f, s, beta)) < 1e-5
+    # the formula with the label sign swapped or beta doubled is far outside the 1e-5 above
+    assert abs(ref(f, -s, beta) - got) > 0.02 and abs(ref(f, s, 2 * beta) - got) > 0.02
+    g = jax.grad(lambda x: bce_loss(x, jnp.asarray(s, jnp.float32), beta, m))(jnp.asarray(f, jnp.float32))
+    assert np.all(np.sign(np.asarray(g))[[0, 2, 3]] == np.sign(f - s)[[0, 2, 3]]) and abs(float(g[1])) < 1e-6
+
+
+def test_eikonal_term_counts_only_pairs_the_config_puts_in_the_band():
+    from jaxmap.n3 import field, hierarchical
+    from jaxmap.n3.decoder import init_decoder
+
+    _, dec = init_decoder(jax.random.PRNGKey(0), 8, 32, 2)
+    rng = np.random.default_rng(0)
+    feats = jnp.asarray(rng.normal(0, 0.5, (4, 24, 8)), jnp.float32)
+    vox = jnp.asarray(rng.integers(-5, 5, (4, 3)), jnp.int32)
+    pts = (vox[:, None, :] + jnp.asarray(rng.uniform(0.1, 0.9, (4, 6, 3)), jnp.float32)) * 0.2
+
+    def loss(surface, weight_e):
+        b = hierarchical.Batch(points=pts, labels=jnp.zeros((4, 6)), surface=surface,
+                               mask=jnp.ones((4, 6), bool), voxel_rows=jnp.zeros((4,), jnp.int32), coords=vox)
+        return field.n3_loss(feats, dec, b, vox, 0.1, weight_e, leaf=0.2, levels=3)
+
+    none = jnp.zeros((4, 6), bool)
+    half = jnp.arange(6)[None].repeat(4, 0) < 3
+    total, (bce, eik) = loss(half, 0.5)
+    assert float(eik) > 0.1 and abs(float(total) - float(bce) - 0.5 * float(eik)) < 1e-5
+    assert float(loss(none, 0.5)[1][1]) == 0.0                      # free pairs: no eikonal term
+    assert abs(float(loss(half, 0.0)[0]) - float(bce)) < 1e-6       # weight_e = 0: BCE alone
+
+
+def test_decoder_stays_frozen_after_the_freeze_frame():
+    m = N3Mapper(load_config("configs/city.yaml", SMALL + ["train.freeze_after_frame=2", "train.iters=4"]))
+    seen = []
+    for i in range(5):
+        m.add_frame(corridor_scan(1.0 * i, max_range=10.0), pose_at(1.0 * i))
+        seen.append([np.asarray(x).copy() for x in jax.tree_util.tree_leaves(m.state.decoder)])
+    moved = lambda a, b: any(not np.array_equal(x, y) for x, y in zip(a, b))  # noqa: E731
+    assert moved(seen[0], seen[1])                     # frame 1 (< 2) trains the decoder
+    assert not moved(seen[1], seen[2]) and not moved(seen[1], seen[4])   # frames 2.. do not
+    assert m.timings[-1]["loss"] > 0 and moved([np.asarray(m.state.feature_table)], [np.zeros(1)])
+
+
+@pytest.mark.parametrize("extra", [[], ["sampling.free_ray_n=0", "window.carve=false"]])
+def test_free_samples_outside_allocated_voxels_are_dropped_and_counted(extra):
+    """FrameStats.free_dropped equals the free samples (recomputed with the frame's key) whose leaf
+    voxel the map does not hold; no stored free pair lies outside an allocated voxel."""
+    cfg = load_config("configs/city.yaml", SMALL + list(extra))
+    static = core.N3Static.from_config(cfg)
+    state = core.init_state(static, cfg, core.capacities_for(static, cfg))
+    pts, nrm, pose = scan.preprocess(corridor_scan(0.0, max_range=10.0), pose_at(0.0), cfg.preprocess, 0)
+    state = core.set_origin(static, state, pose[:3, 3])
+    batch = scan.to_batch(pts, nrm, pose, core.origin_world(static, state), scan.bucket_for(len(pts)))
+    key = jax.random.PRNGKey(3)
+    state, fs = jax.jit(lambda st, b, k: core.integrate(static, st, b, k))(state, batch, key)
+    assert bool(fs.ok)
+    smp = sample_frame(key, batch.points, batch.normals, batch.valid, batch.sensor, label_mode=static.label_mode,
+                       trunc=static.trunc, sigma=static.sigma, n_surface=static.n_surface, n_free=static.n_free,
+                       free_band=static.free_band, free_label=static.free_label,
+                       free_label_mode=static.free_label_mode, n_ray=static.n_ray, min_range=static.free_min_range)
+    held = {tuple(c) for c in np.asarray(state.voxel_coord)[: int(fs.voxels)]}
+    free = np.asarray(smp.valid & ~smp.surface)
+    vox = np.floor(np.asarray(smp.points)[free] / static.leaf).astype(int)
+    outside = sum(tuple(v) not in held for v in vox)
+    assert outside > 0 and int(fs.free_dropped) == outside
+    st = state.store
+    used = np.arange(st.block_size)[None] < np.asarray(st.count)[:, None]
+    stored_free = used & ~np.asarray(st.surface)
+    sv = np.floor(np.asarray(st.pairs)[..., :3][stored_free] / static.leaf).astype(int)
+    assert len(sv) > 0 and all(tuple(v) in held for v in sv)
