@@ -1,4 +1,5 @@
-"""Scan preprocessing: range/height crop, voxel downsample, PCA normals oriented to the sensor.
+"""Scan preprocessing: range/height crop, voxel downsample, optional outlier removal, PCA normals
+oriented to the sensor.
 
 Pure numpy + scipy (no open3d), so the mapping core runs on machines that only have JAX.
 All functions take and return sensor-frame arrays; the mapper moves them to the map frame.
@@ -43,6 +44,24 @@ def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
     return points[np.sort(order[first])]
 
 
+def remove_outliers(points_s: np.ndarray, k: int = 20, n_mad: float = 6.0) -> np.ndarray:
+    """Statistical outlier removal for a spinning LiDAR (mixed pixels between a foreground and a
+    background, stray returns): drop points whose mean distance to their k nearest neighbours,
+    divided by their range (the beam spacing grows with range), exceeds the scan's median of that
+    ratio by more than n_mad robust standard deviations (1.4826 MAD).
+
+    points_s: [N,3] float32 sensor frame -> [M,3] float32, M <= N (order kept); n_mad <= 0 keeps all.
+    """
+    n = len(points_s)
+    if n_mad <= 0 or n <= k:
+        return points_s
+    d, _ = cKDTree(points_s).query(points_s, k=k + 1, workers=-1)          # [N, k+1], self first
+    spread = d[:, 1:].mean(axis=1) / np.maximum(np.linalg.norm(points_s, axis=1), 1.0)
+    med = np.median(spread)
+    mad = 1.4826 * np.median(np.abs(spread - med))
+    return points_s[spread <= med + n_mad * max(mad, 1e-9)]
+
+
 def estimate_normals(points_s: np.ndarray, k: int = 20) -> tuple[np.ndarray, np.ndarray]:
     """PCA normals from the k nearest neighbours, oriented towards the sensor at the origin.
 
@@ -80,5 +99,7 @@ def preprocess_scan(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
     """
     pts = crop(points_s, cfg.min_range_m, cfg.max_range_m, cfg.min_z_m, cfg.max_z_m)
     pts = voxel_downsample(pts, cfg.vox_down_m)
+    if cfg.outlier_mad > 0:
+        pts = remove_outliers(pts, cfg.normal_knn, cfg.outlier_mad)
     normals, _ = estimate_normals(pts, cfg.normal_knn)
     return pts.astype(np.float32), normals
