@@ -312,40 +312,6 @@ def inside_boxes(points, boxes: Boxes, inflate_m: float = 0.0, return_box: bool 
     return (inside, best_box) if return_box else inside
 
 
-def subdivided_centroids(vertices, faces, max_edge_m: float):
-    """Deterministic area samples of a triangle mesh: every triangle cut into k^2 congruent triangles
-    (k = ceil(longest edge / max_edge_m)), their centroids.
-
-    vertices [V,3], faces [F,3] -> (centroids [M,3] float64, area of each [M] float64, face [M] int64),
-    M = sum k^2; the areas sum to the mesh's area exactly."""
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
-    if len(f) == 0:
-        return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
-    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
-    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    edge = np.max(np.stack([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
-                            np.linalg.norm(a - c, axis=1)], 1), axis=1)
-    k = np.maximum(1, np.ceil(edge / max_edge_m - 1e-9)).astype(np.int64)
-    out_p, out_a, out_f = [], [], []
-    for kk in np.unique(k):
-        fid = np.flatnonzero(k == kk)
-        i, j = np.meshgrid(np.arange(kk), np.arange(kk), indexing="ij")
-        i, j = i.ravel(), j.ravel()
-        up = i + j <= kk - 1
-        down = i + j <= kk - 2
-        uv = np.concatenate([np.stack([i[up] + 1 / 3, j[up] + 1 / 3], 1),
-                             np.stack([i[down] + 2 / 3, j[down] + 2 / 3], 1)]) / kk  # [kk^2, 2]
-        step = max(1, 2_000_000 // len(uv))
-        for s in range(0, len(fid), step):
-            ff = fid[s:s + step]
-            pa, e1, e2 = a[ff, None, :], (b - a)[ff, None, :], (c - a)[ff, None, :]
-            out_p.append((pa + uv[None, :, :1] * e1 + uv[None, :, 1:] * e2).reshape(-1, 3))
-            out_a.append(np.repeat(area[ff] / (kk * kk), len(uv)))
-            out_f.append(np.repeat(ff, len(uv)))
-    return np.concatenate(out_p), np.concatenate(out_a), np.concatenate(out_f)
-
-
 GHOST_INFLATE_M = 0.1   # the moving objects' boxes are grown by this for the ghost area and static observations
 GHOST_STATIC_M = 0.15   # predicted surface closer than this to a GT point is static surface, not ghost
 GHOST_MAX_EDGE_M = 0.05  # faces near the boxes are cut to edges <= this before their centroids are tested
