@@ -62,8 +62,10 @@ class SamplingConfig:
     sigma_m: float = 0.05            # std of the Gaussian offset inside the band (~ range noise)
     free_sample_n: int = 3           # free-space samples per scan point, on the ray before the band
     free_band_m: float = 1.0         # free samples lie in the last free_band_m before the band
-    free_ray_n: int = 0              # more free samples per scan point, stratified along the whole ray
+    free_ray_n: int = 6              # more free samples per scan point, stratified along the whole ray
                                      # (from preprocess.min_range_m to the band): they carve what moved
+    free_ray_quiet_frames: int = 10  # ... in voxels no frame has hit within this many frames (static surfaces are
+                                     # hit again and again; a ray's label is honest only about its own hit)
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
     free_label_mode: str = "projected"  # "projected": that label capped by the distance to the hit's
                                         # tangent plane; "truncation": the label as is (paper; ablation)
@@ -110,7 +112,7 @@ class WindowConfig:
                                      # window; "ring": the newest pairs (ablation)
     pairs_per_frame: int = 8         # at most this many of a frame's pairs offered to a voxel (0 = all)
     initial_blocks: int = 1 << 14    # blocks in the store at start (grown outside jit when full)
-    carve: bool = False              # free space along the ray replaces the stored pairs it contradicts
+    carve: bool = True               # free space along the ray replaces the stored pairs it contradicts
                                      # (needs sampling.free_ray_n > 0): erases what moved away
     carve_margin_m: float = 0.05     # a stored pair is contradicted when its label < free label - distance - this
     carve_samples: int = 16384       # at most this many ray samples carve per frame (a fixed-size gather)
@@ -299,7 +301,7 @@ RULES: dict[type, dict[str, Rule]] = {
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),
                      "free_sample_n": at_least(0), "free_band_m": at_least(0.0),
-                     "free_ray_n": at_least(0)},
+                     "free_ray_n": at_least(0), "free_ray_quiet_frames": at_least(0)},
     GridConfig: {"leaf_vox_size": above(0.0), "feature_levels": at_least(1), "feature_dim": at_least(1),
                  "feature_std": at_least(0.0), "max_load": strictly_within(0.0, 1.0)},
     DecoderConfig: {"hidden_dim": at_least(1), "hidden_layers": at_least(0)},

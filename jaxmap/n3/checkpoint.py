@@ -33,7 +33,8 @@ from jaxmap.errors import CheckpointError
 from jaxmap.grid import hashing
 from jaxmap.n3 import core
 
-_STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames_seen", "voxel_of_slot", "coord")
+_STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames_seen", "voxel_of_slot", "coord",
+                       "last_hit")
 
 
 def _rows(x, n: int) -> np.ndarray:
@@ -101,7 +102,10 @@ def expand(static: core.N3Static, cfg: MapConfig, caps: core.Capacities, c: dict
 
     st = state.store
     slots = jnp.asarray(c["store_slots"][:nb])
-    blocks = {k: getattr(st, k).at[slots].set(jnp.asarray(c["store"][k][:nb])) for k in _STORE_BLOCK_FIELDS}
+    saved = dict(c["store"])
+    if "last_hit" not in saved:  # a checkpoint from before free-space carving: every block counts as just hit
+        saved["last_hit"] = np.full((max(nb, 1),), int(np.asarray(c["frame"])) - 1, np.int32)
+    blocks = {k: getattr(st, k).at[slots].set(jnp.asarray(saved[k][:nb])) for k in _STORE_BLOCK_FIELDS}
     store = st.replace(**blocks, slot_of_voxel=put(st.slot_of_voxel, c["slot_of_voxel"], nv),
                        window_ids=jnp.asarray(c["window_ids"]), window_n=jnp.asarray(c["window_n"]))
     as_j = functools.partial(jax.tree_util.tree_map, jnp.asarray)

@@ -65,6 +65,7 @@ class N3Static:
     n_free: int                 # free samples in the band before the truncation region
     n_ray: int                  # free samples along the whole ray
     free_min_range: float       # where the ray's free samples start (metres from the sensor)
+    ray_quiet: int              # ray samples use only voxels no frame hit within this many frames
     free_band: float
     free_label: float
     free_label_mode: str
@@ -99,7 +100,7 @@ class N3Static:
             leaf=leaf, levels=g.feature_levels, feature_dim=g.feature_dim, hidden_dim=cfg.decoder.hidden_dim,
             hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
             sigma=s.sigma_m, n_surface=s.surface_sample_n, n_free=s.free_sample_n, n_ray=s.free_ray_n,
-            free_min_range=cfg.preprocess.min_range_m, free_band=s.free_band_m,
+            free_min_range=cfg.preprocess.min_range_m, ray_quiet=s.free_ray_quiet_frames, free_band=s.free_band_m,
             free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
             free_label_mode=s.free_label_mode, carve=w.carve, carve_margin=w.carve_margin_m,
             carve_samples=w.carve_samples,
@@ -346,7 +347,14 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         # would lie: such samples are dropped. What moved away is hit by nobody any more.
         v_cap = state.voxel_coord.shape[0]
         hit_voxel = jnp.zeros((v_cap,), bool).at[jnp.where(surf_rows >= 0, surf_rows, v_cap)].set(True, mode="drop")
-        ray_ok = free_ok[:, static.n_free:] & ~hit_voxel[jnp.maximum(free_rows[:, static.n_free:], 0)]
+        ray_rows = jnp.maximum(free_rows[:, static.n_free:], 0)
+        ray_ok = free_ok[:, static.n_free:] & ~hit_voxel[ray_rows]
+        # ... and so are those in voxels an earlier frame hit within the last `ray_quiet` frames: a
+        # static surface is hit again and again (a 10 Hz LiDAR's rings sweep the road), what moved
+        # away is not, so only the space of what left is carved and trained free.
+        slot = state.store.slot_of_voxel[ray_rows]
+        recent = (slot >= 0) & (state.store.last_hit[jnp.maximum(slot, 0)] >= state.frame - static.ray_quiet)
+        ray_ok &= ~recent
         free_ok = free_ok.at[:, static.n_free:].set(ray_ok)
     rows = jnp.concatenate([jnp.where(valid[:, :ns], surf_rows.reshape(n, ns), -1),
                             jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
@@ -372,7 +380,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
             carved_store, carved = window.carve(
                 store, jnp.where(ray_ok, free_rows[:, static.n_free:], -1).reshape(-1), pts, lab,
                 ray_ok.reshape(-1) & sst.ok, state.frame, jax.random.fold_in(key, 2), margin=static.carve_margin,
-                max_samples=static.carve_samples)
+                max_samples=static.carve_samples, quiet_frames=static.ray_quiet)
             store = carved_store
         pairs = window.total_pairs(store)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,

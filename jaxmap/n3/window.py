@@ -38,6 +38,8 @@ class PairStore:
     received: jax.Array       # [S] int32: pairs offered to the block since it was assigned (after the
                               #   per-frame quota); the ring's write position is `received % P`
     frames_seen: jax.Array    # [S] int32: frames that offered pairs to the block since it was assigned
+    last_hit: jax.Array       # [S] int32: the last frame whose near-surface samples reached the block
+                              #   (-1: none); free space carves only blocks no recent frame hit
     voxel_of_slot: jax.Array  # [S] int32: voxel row owning the slot, -1 = free
     coord: jax.Array          # [S, 3] int32: leaf-voxel coordinate of the block
     slot_of_voxel: jax.Array  # [V] int32: slot of each voxel row, -1 = none
@@ -62,6 +64,7 @@ def create(n_slots: int, pairs_per_voxel: int, n_voxel_rows: int) -> PairStore:
         count=jnp.zeros((s,), jnp.int32),
         received=jnp.zeros((s,), jnp.int32),
         frames_seen=jnp.zeros((s,), jnp.int32),
+        last_hit=jnp.full((s,), -1, jnp.int32),
         voxel_of_slot=jnp.full((s,), -1, jnp.int32),
         coord=jnp.zeros((s, 3), jnp.int32),
         slot_of_voxel=jnp.full((n_voxel_rows,), -1, jnp.int32),
@@ -83,6 +86,7 @@ def grow(store: PairStore, n_slots: int | None = None, n_voxel_rows: int | None 
         pairs=put(fresh.pairs, store.pairs), surface=put(fresh.surface, store.surface),
         frame=put(fresh.frame, store.frame), count=put(fresh.count, store.count),
         received=put(fresh.received, store.received), frames_seen=put(fresh.frames_seen, store.frames_seen),
+        last_hit=put(fresh.last_hit, store.last_hit),
         voxel_of_slot=put(fresh.voxel_of_slot, store.voxel_of_slot),
         coord=put(fresh.coord, store.coord),
         slot_of_voxel=put(fresh.slot_of_voxel, store.slot_of_voxel),
@@ -197,6 +201,7 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     count = jnp.where(drop, 0, store.count)
     received = jnp.where(drop, 0, store.received)
     frames_seen = jnp.where(drop, 0, store.frames_seen)
+    last_hit = jnp.where(drop, -1, store.last_hit)
     # Assign: voxels needing a block take the free blocks in order of voxel row (deterministic, and
     # the order of the pre-refactor store).
     k = min(m, s)
@@ -212,7 +217,10 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     count = count.at[tgt_slot].set(0, mode="drop")
     received = received.at[tgt_slot].set(0, mode="drop")
     frames_seen = frames_seen.at[tgt_slot].set(0, mode="drop")
+    last_hit = last_hit.at[tgt_slot].set(-1, mode="drop")
     slot = jnp.where(real & ok, slot_of_voxel[jnp.minimum(row, v - 1)], s)    # [M] s: skip
+    # (before the per-frame quota: every near-surface sample of the frame marks its block as hit)
+    last_hit = last_hit.at[jnp.where(surface, slot, s)].set(frame, mode="drop")
     rank, n_in = ranks_within_slot(slot, s)
     ss = jnp.minimum(slot, s - 1)
     q = pairs_per_frame
@@ -249,6 +257,7 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
         frame=store.frame.at[tgt, pos].set(frame, mode="drop"),
         received=received + n_in,
         frames_seen=frames_seen + (n_in > 0),
+        last_hit=last_hit,
         count=jnp.minimum(count + n_in, p),
         voxel_of_slot=voxel_of_slot, slot_of_voxel=slot_of_voxel, coord=coord,
     )
@@ -282,7 +291,8 @@ def total_pairs(store: PairStore):
     return store.count.sum()
 
 
-def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, margin: float, max_samples: int):
+def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, margin: float, max_samples: int,
+          quiet_frames: int = 0):
     """Free space replaces the stored pairs it contradicts (what moved away is erased, N3 Fig. 10).
 
     A free-space sample y with an honest label l_y (a lower bound of its distance to every surface)
@@ -291,7 +301,10 @@ def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, marg
     it described is gone (a car that drove on). Each sample replaces the most contradicted such pair
     of its block with itself (a free-space pair of this frame); pairs of the current frame are never
     replaced. True surfaces are safe as long as free labels are honest (`sampling.free_label_mode`
-    projected, ray samples in voxels the frame hit dropped), `margin` covering the range noise.
+    projected, ray samples in voxels the frame hit dropped), `margin` covering the range noise; and
+    a ray's label is only honest about its own hit (a ray to a far wall that passes 10 cm above the
+    road claims tr), so blocks that a frame hit within the last `quiet_frames` frames are not carved:
+    a static surface is hit again and again, what moved away is not.
 
     voxel_rows: [M] int32 (-1: none); points: [M, 3] float32 map frame; labels: [M]; use: [M] bool;
     frame: [] int32; key: PRNG key. At most `max_samples` of the usable samples carve per frame (a
@@ -302,6 +315,8 @@ def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, marg
     s, p = store.n_slots, store.block_size
     v = store.slot_of_voxel.shape[0]
     slot = jnp.where(use & (voxel_rows >= 0), store.slot_of_voxel[jnp.clip(voxel_rows, 0, v - 1)], -1)
+    quiet = (store.last_hit[jnp.maximum(slot, 0)] < frame - quiet_frames)
+    slot = jnp.where(quiet, slot, -1)
     total = slot.shape[0]
     m = min(max_samples, total)
     start = jax.random.randint(key, (), 0, total)
