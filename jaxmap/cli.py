@@ -148,6 +148,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--suite", dest="validation_suite", action="store_true",
                    help="n3: the validation suite (4 cities: seeds, layouts, noise, beams) on which defaults are "
                         "chosen; rows, mean and worst; --only picks variants (default jaxmap)")
+    p.add_argument("--cities", default=None,
+                   help="n3 --suite: comma-separated subset of the suite's cities (the variant's other rows in "
+                        "OUT/suite.json are kept)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     return parser
 

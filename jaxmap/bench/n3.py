@@ -30,12 +30,20 @@ VARIANTS = {
     "jaxmap": [],
     # the free-space label and pair store before issue 14 (flat +tr free labels, newest-64 ring)
     "flat_ring": ["sampling.free_label_mode=truncation", "window.block_policy=ring", "window.pairs_per_frame=0"],
+    # free space before issue 21: samples only in the last metre before the band, nothing carved
+    "band_only": ["sampling.free_ray_n=0", "window.carve=false"],
+    "no_carve": ["window.carve=false"],                  # samples along the ray, but nothing carved
+    "ray_only": ["sampling.free_sample_n=0"],           # the paper's rule: every free sample on the whole ray
+    "sigma_0.1": ["sampling.sigma_m=0.1"],              # the paper's tr / 3
+    "outliers": ["preprocess.outlier_mad=6"],           # range-scaled statistical outlier removal
     "projective": ["sampling.label_mode=projective"],
     "corrected": ["sampling.label_mode=corrected"],
     "replay": ["window.mode=replay"],
     "keyframe": ["window.mode=keyframe"],
     "no_hier": ["train.hierarchical=false"],
 }
+# what a plain `jaxmap bench n3` runs (the others are run by name, with --only, mostly on the suite)
+DEFAULT_VARIANTS = ("jaxmap", "flat_ring", "projective", "corrected", "replay", "keyframe", "no_hier")
 COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
 
 
@@ -114,7 +122,7 @@ def main(args) -> int:
         print(f"[bench] synthesizing the default city into {data}")
         generate_city(data, seed=0)
     base = base_overrides(args, data)[1:]  # the data path goes on the command line
-    names = list(VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
+    names = list(DEFAULT_VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
     for name in names:
         if name not in VARIANTS and name not in ("tsdf", "speed"):
             raise SystemExit(f"unknown variant {name!r}; choose from speed, tsdf, {', '.join(VARIANTS)}")

@@ -1,12 +1,20 @@
 """`jaxmap bench n3 --suite`: the validation suite on which jaxmap's N3 defaults are chosen.
 
-Four synthetic cities that differ from the default city (`data/city_bench`, the scene the README's
-tables report) and from one another in seed, layout, range noise and beam count:
+Six synthetic cities that differ from the default city (`data/city_bench`, the scene the README's
+tables report) and from one another in seed, layout, range noise, beam count, traffic and sensor:
 
     grid_s1            street grid, seed 1
     grid_s2_noise2cm   street grid, seed 2, Gaussian range noise of 2 cm
     suburb_s3          the suburb layout (curved streets, detached houses), seed 3
     grid_s4_b32        street grid, seed 4, a 32-beam LiDAR
+    grid_s1_traffic    grid_s1 with 8 moving objects (4 cars, 3 pedestrians: 6.3 % of the scan points; never in
+                       the GT): the static scene and the GT are grid_s1's, its "twin"
+    grid_s2_realistic  grid_s2_noise2cm with a real sensor's artifacts (mixed pixels, dropouts,
+                       outliers, per-beam offsets; `jaxmap synth city --realistic`): twin grid_s2_noise2cm
+
+The first four are the clean cities (mean and worst as before); each of the other two is compared
+with its twin: the ghost area (traffic) and the share of predicted surface the protocol drops as
+farther than 0.2 m from the GT (realistic), and the C-L1 ratio to the twin.
 
 Each variant (`--only jaxmap,projective,...`, default `jaxmap`) maps every city in its own process
 with `configs/city.yaml` (plus `--set`s), and is evaluated with the standard protocol; the table has
@@ -26,16 +34,26 @@ SUITE = {
     "grid_s2_noise2cm": dict(seed=2, noise_m=0.02),
     "suburb_s3": dict(seed=3, layout="suburb"),
     "grid_s4_b32": dict(seed=4, beams=32),
+    "grid_s1_traffic": dict(seed=1, traffic=8),
+    "grid_s2_realistic": dict(seed=2, noise_m=0.02, realistic="all"),
 }
+TWINS = {"grid_s1_traffic": "grid_s1", "grid_s2_realistic": "grid_s2_noise2cm"}
+CLEAN = tuple(c for c in SUITE if c not in TWINS)
 KEYS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
 
 
-def suite_cities(root: str) -> dict:
-    """{name: directory} of the suite under root, synthesized where missing."""
+def suite_cities(root: str, only=None) -> dict:
+    """{name: directory} of the suite under root (the cities named in `only`, default all),
+    synthesized where missing."""
     from jaxmap.synth.city import generate_city
 
     out = {}
+    unknown = set(only or ()) - set(SUITE)
+    if unknown:
+        raise SystemExit(f"unknown suite cities {', '.join(sorted(unknown))}; choose from {', '.join(SUITE)}")
     for name, kw in SUITE.items():
+        if only and name not in only:
+            continue
         d = os.path.join(root, name)
         if not os.path.isfile(os.path.join(d, "poses.txt")):
             print(f"[bench] synthesizing {name} into {d}", flush=True)
@@ -44,8 +62,10 @@ def suite_cities(root: str) -> dict:
     return out
 
 
-def summarize(rows: dict) -> dict:
-    """Mean and worst of the metric rows {city: metrics}: worst = max of the distances, min of the ratios."""
+def summarize(rows: dict, cities=None) -> dict:
+    """Mean and worst of the metric rows {city: metrics} (of `cities` only, when given): worst = max of
+    the distances, min of the ratios."""
+    rows = {c: r for c, r in rows.items() if cities is None or c in cities}
     vals = {k: np.array([r[k] for r in rows.values()], float) for k in KEYS}
     mean = {k: float(v.mean()) for k, v in vals.items()}
     worst = {k: float(v.max() if k.endswith("_cm") else v.min()) for k, v in vals.items()}
@@ -57,30 +77,52 @@ def _line(name: str, m: dict, extra: str = "") -> str:
             f"{m['completion_ratio']:>7.2f}{m['f_score']:>7.2f}{extra}")
 
 
-def print_suite(variant: str, rows: dict, floors: dict, signed: dict) -> None:
+def print_suite(variant: str, rows: dict, floors: dict, signed: dict, extra: dict | None = None) -> None:
+    """The suite table: one row per city (protocol metrics, its floor, what the protocol drops, the
+    ghost area, the signed road / sidewalk error), the clean cities' mean and worst, then each
+    traffic / realistic city against its twin."""
+    extra = extra or {}
+    nan = float("nan")
     head = (f"{'city (' + variant + ')':<22}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
-            f"   {'floor C-L1':>10}{'floor F':>8}   signed error road / sidewalk cm")
+            f"   {'floor C-L1':>10}{'floor F':>8}{'far %':>7}{'F all %':>8}{'ghost m2':>9}"
+            f"   signed error road / sidewalk cm")
     print(head)
     print("-" * len(head))
     for city, m in rows.items():
         fl = floors.get(city) or {}
         se = signed.get(city) or {}
+        ex = extra.get(city) or {}
         rs = "/".join(f"{se[c]['mean_cm']:+.2f}" if c in se else "  nan" for c in ("road", "sidewalk"))
-        print(_line(city, m, f"   {fl.get('chamfer_l1_cm', float('nan')):>10.2f}{fl.get('f_score', float('nan')):>8.2f}"
-                              f"   {rs}"))
-    s = summarize(rows)
-    fl_rows = [f for f in floors.values() if f]
+        ghost = ex.get("ghost_area_m2", {}).get("total", nan) if ex.get("ghost_area_m2") else nan
+        print(_line(city, m, f"   {fl.get('chamfer_l1_cm', nan):>10.2f}{fl.get('f_score', nan):>8.2f}"
+                              f"{ex.get('pred_far_share', nan):>7.2f}{ex.get('f_score_all', nan):>8.2f}"
+                              f"{ghost:>9.1f}   {rs}"))
+    clean = [c for c in CLEAN if c in rows]
+    s = summarize(rows, clean)
+    fl_rows = [floors[c] for c in clean if floors.get(c)]
     fl_mean = {k: float(np.mean([f[k] for f in fl_rows])) for k in ("chamfer_l1_cm", "f_score")} if fl_rows else {}
-    print(_line("mean", s["mean"], f"   {fl_mean.get('chamfer_l1_cm', float('nan')):>10.2f}"
-                                   f"{fl_mean.get('f_score', float('nan')):>8.2f}"))
-    print(_line("worst", s["worst"]))
+    print(_line(f"mean ({len(clean)} clean)", s["mean"], f"   {fl_mean.get('chamfer_l1_cm', nan):>10.2f}"
+                                                     f"{fl_mean.get('f_score', nan):>8.2f}"))
+    print(_line(f"worst ({len(clean)} clean)", s["worst"]))
+    for city, twin in TWINS.items():
+        if city not in rows or twin not in rows:
+            continue
+        a, b = rows[city], rows[twin]
+        ea, eb = extra.get(city) or {}, extra.get(twin) or {}
+        g = (ea.get("ghost_area_m2") or {})
+        ghost = ", ".join(f"{k} {v:.1f}" for k, v in g.items()) if g else "none"
+        print(f"{city} / {twin}: C-L1 {a['chamfer_l1_cm']:.2f} / {b['chamfer_l1_cm']:.2f} cm "
+              f"(x{a['chamfer_l1_cm'] / b['chamfer_l1_cm']:.3f}), far {ea.get('pred_far_share', nan):.2f} / "
+              f"{eb.get('pred_far_share', nan):.2f} %, F all {ea.get('f_score_all', nan):.2f} / "
+              f"{eb.get('f_score_all', nan):.2f} %, ghost m2: {ghost}")
 
 
 def main_suite(args, variants: dict, map_in_subprocess) -> int:
     from jaxmap.bench import base_overrides
 
     root = args.data if args.data not in (None, "data/city_bench") else "data/suite"
-    cities = suite_cities(root)
+    only = [c.strip() for c in args.cities.split(",")] if getattr(args, "cities", None) else None
+    cities = suite_cities(root, only)
     names = [v.strip() for v in args.only.split(",")] if args.only else ["jaxmap"]
     for name in names:
         if name not in variants:
@@ -90,7 +132,7 @@ def main_suite(args, variants: dict, map_in_subprocess) -> int:
     cache = os.path.join(out, "xla_cache")
     path = os.path.join(out, "suite.json")
     for name in names:
-        rows, floors, signed, held = {}, {}, {}, {}
+        rows, floors, signed, held, extra = {}, {}, {}, {}, {}
         for city, d in cities.items():
             base = base_overrides(args, d)[1:]
             print(f"[bench] suite {name}: {city}", flush=True)
@@ -100,12 +142,20 @@ def main_suite(args, variants: dict, map_in_subprocess) -> int:
             floors[city] = {k: v for k, v in (m.get("floor") or {}).items() if k in KEYS}
             signed[city] = m.get("signed_error_cm", {})
             held[city] = s.get("store_frames_held")
+            extra[city] = {k: m[k] for k in ("pred_far_share", "precision_all", "f_score_all", "ghost_area_m2")
+                           if k in m}
         results = json.load(open(path)) if os.path.isfile(path) else {}  # (another bench may have written)
+        if only and name in results:  # a subset of the cities: the variant's other rows stay
+            old = results[name]
+            rows = {**old.get("rows", {}), **rows}
+            floors, signed = {**old.get("floors", {}), **floors}, {**old.get("signed_error_cm", {}), **signed}
+            held, extra = {**old.get("frames_held", {}), **held}, {**old.get("beyond_protocol", {}), **extra}
+            rows = {c: rows[c] for c in SUITE if c in rows}
         results[name] = {"rows": rows, "floors": floors, "signed_error_cm": signed, "frames_held": held,
-                         **summarize(rows)}
+                         "beyond_protocol": extra, **summarize(rows, CLEAN)}
         with open(path, "w") as f:
             json.dump(results, f, indent=1)
         print()
-        print_suite(name, rows, floors, signed)
+        print_suite(name, rows, floors, signed, extra)
         print()
     return 0
