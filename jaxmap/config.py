@@ -67,6 +67,8 @@ class SamplingConfig:
     free_ray_quiet_frames: int = 10  # ... in voxels no frame has hit within this many frames (static surfaces are
                                      # hit again and again; a ray's label is honest only about its own hit)
     free_label_m: float = -1.0       # label of free-space samples; <0 means "= truncation"
+    free_point_filter_m: float = 0.0  # > 0: scan points where the map so far has an SDF above this (confidently
+                                     # free: something moved in, a mixed pixel) get no samples; 0 = off
     free_label_mode: str = "projected"  # "projected": that label capped by the distance to the hit's
                                         # tangent plane; "truncation": the label as is (paper; ablation)
 
@@ -116,6 +118,8 @@ class WindowConfig:
                                      # (needs sampling.free_ray_n > 0): erases what moved away
     carve_margin_m: float = 0.05     # a stored pair is contradicted when its label < free label - distance - this
     carve_samples: int = 16384       # at most this many ray samples carve per frame (a fixed-size gather)
+    carve_rule: str = "replace"      # "replace": a free sample takes the place of the pair it contradicts most;
+                                     # "raise": every contradicted pair's label rises to the Lipschitz bound
 
 
 @dataclass(frozen=True)
@@ -301,7 +305,8 @@ RULES: dict[type, dict[str, Rule]] = {
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),
                      "free_sample_n": at_least(0), "free_band_m": at_least(0.0),
-                     "free_ray_n": at_least(0), "free_ray_quiet_frames": at_least(0)},
+                     "free_ray_n": at_least(0), "free_ray_quiet_frames": at_least(0),
+                     "free_point_filter_m": at_least(0.0)},
     GridConfig: {"leaf_vox_size": above(0.0), "feature_levels": at_least(1), "feature_dim": at_least(1),
                  "feature_std": at_least(0.0), "max_load": strictly_within(0.0, 1.0)},
     DecoderConfig: {"hidden_dim": at_least(1), "hidden_layers": at_least(0)},
@@ -311,7 +316,8 @@ RULES: dict[type, dict[str, Rule]] = {
     WindowConfig: {"mode": one_of("voxel", "replay", "keyframe"), "keyframes": at_least(1),
                    "pairs_per_voxel": at_least(1), "initial_blocks": at_least(1),
                    "block_policy": one_of("reservoir", "ring"), "pairs_per_frame": at_least(0),
-                   "carve_margin_m": at_least(0.0), "carve_samples": at_least(1)},
+                   "carve_margin_m": at_least(0.0), "carve_samples": at_least(1),
+                   "carve_rule": one_of("replace", "raise")},
     MeshConfig: {"resolution_m": above(0.0), "min_component_faces": at_least(0), "mask_level": at_least(0),
                  "min_leaf_corners": within(0, 8)},
     EvalConfig: {"threshold_m": above(0.0), "cull_distance_m": above(0.0), "n_samples": at_least(1)},

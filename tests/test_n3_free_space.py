@@ -172,3 +172,24 @@ def test_free_samples_outside_allocated_voxels_are_dropped_and_counted(extra):
     stored_free = used & ~np.asarray(st.surface)
     sv = np.floor(np.asarray(st.pairs)[..., :3][stored_free] / static.leaf).astype(int)
     assert len(sv) > 0 and all(tuple(v) in held for v in sv)
+
+
+def test_points_where_the_map_is_confidently_free_get_no_samples():
+    """PIN-SLAM's dynamic filter (`sampling.free_point_filter_m`): a box stands in the hall, leaves and is
+    carved; when it comes back (a second car in the same lane), its points fall where the map learned
+    free space and get no samples. The hall's own points are kept all along."""
+    m = N3Mapper(load_config("configs/city.yaml", SMALL + ["sampling.free_point_filter_m=0.1",
+                                                            "train.freeze_after_frame=10"]))
+    for i in range(27):
+        x = -2.0 + 0.1 * i
+        box = BOX if i < 5 or i == 26 else None
+        info = m.add_frame(hall_scan((x, 0, 1.7), box=box), pose_at(x))
+        if box is None:
+            # a static scene keeps its points: all but a few on the ground next to the walls (a concave
+            # corner, where the field is learned ~0.1 m too high: measured 0.2-0.5 % of the points)
+            assert info["points_filtered"] <= 0.01 * info["points"], info
+    pts, _, _ = scan.preprocess(hall_scan((x, 0, 1.7), box=BOX), pose_at(x), m.cfg.preprocess, 26)
+    w = pts + [x, 0.0, 1.7]
+    on_box = int(np.sum(np.all((w > [3.95, -1.05, -0.05]) & (w < [6.05, 1.05, 1.55]), axis=1)))
+    assert on_box > 100 and 0.5 * on_box <= info["points_filtered"] <= on_box + 0.01 * info["points"], \
+        (info, on_box)

@@ -91,9 +91,13 @@ def test_small_city_maps_to_a_mesh_close_to_ground_truth(small_city, tmp_path, m
     assert m["floor"]["chamfer_l1_cm"] < m["chamfer_l1_cm"], m
     # Regression against the engine before its rewrite as pure functions (jaxmap 0.1, commit 13ce444,
     # this exact run): the voxels and corner rows it allocated are integers that depend only on where
-    # the samples fall, and must match exactly.
+    # the samples fall. They match to one voxel: with the packages of 2026-11 (jax 0.10.2, scipy 1.17.1,
+    # numpy 2.4.6) the same engine at the commit before issue 21 allocates 67680 leaf voxels here where
+    # it allocated 67681 before (one sample near a voxel face; the corner rows are unchanged). Another
+    # random stream of the near-surface samples gives the same count, so the check pins the allocation
+    # itself: one key lost or allocated twice per frame would move it by 15.
     frames = json.loads((out / "timing.json").read_text())["frames"]
-    assert (frames[-1]["leaf_voxels"], frames[-1]["feature_rows"]) == (67681, 164385)
+    assert abs(frames[-1]["leaf_voxels"] - 67681) <= 2 and frames[-1]["feature_rows"] == 164385, frames[-1]
     # Re-extract a mesh from the checkpoint at another resolution (a relative run path, as users type it).
     monkeypatch.chdir(tmp_path)
     assert main(["mesh", "run", "--res", "0.2"]) == 0

@@ -66,12 +66,14 @@ class N3Static:
     n_ray: int                  # free samples along the whole ray
     free_min_range: float       # where the ray's free samples start (metres from the sensor)
     ray_quiet: int              # ray samples use only voxels no frame hit within this many frames
+    point_filter: float         # > 0: scan points where the map's SDF exceeds this get no samples
     free_band: float
     free_label: float
     free_label_mode: str
     carve: bool                 # free-space ray samples replace the stored pairs they contradict
     carve_margin: float
     carve_samples: int
+    carve_rule: str
     iters: int
     hierarchical: bool
     nv: int
@@ -101,9 +103,10 @@ class N3Static:
             hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
             sigma=s.sigma_m, n_surface=s.surface_sample_n, n_free=s.free_sample_n, n_ray=s.free_ray_n,
             free_min_range=cfg.preprocess.min_range_m, ray_quiet=s.free_ray_quiet_frames, free_band=s.free_band_m,
+            point_filter=s.free_point_filter_m,
             free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
             free_label_mode=s.free_label_mode, carve=w.carve, carve_margin=w.carve_margin_m,
-            carve_samples=w.carve_samples,
+            carve_samples=w.carve_samples, carve_rule=w.carve_rule,
             iters=t.iters, hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
             batch_size=t.batch_size, freeze_after_frame=t.freeze_after_frame, reset_adam=t.reset_adam_each_frame,
             window_mode=w.mode, keyframes=w.keyframes if w.mode == "keyframe" else 0,
@@ -174,7 +177,8 @@ class FrameStats(NamedTuple):
     window_blocks: jax.Array    # [] int32 blocks in the window holding pairs
     store_pairs: jax.Array      # [] int32 pairs held by the store
     free_dropped: jax.Array     # [] int32 free-space samples outside every allocated voxel (train nothing)
-    carved: jax.Array           # [] int32 stored pairs that this frame's free space contradicted and replaced
+    carved: jax.Array           # [] int32 stored pairs that this frame's free space contradicted and changed
+    points_filtered: jax.Array  # [] int32 scan points dropped where the map was confidently free
 
 
 class TrainStats(NamedTuple):
@@ -302,6 +306,24 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
     """Put one scan into the map (one pass; see the module docstring for `ok` and retries)."""
     n = scan.points.shape[0]
     ns, nf = static.n_surface, static.n_free + static.n_ray   # nf: free samples of both kinds
+    n_filtered = jnp.zeros((), jnp.int32)
+    if static.point_filter > 0:
+        # PIN-SLAM's dynamic filter: a scan point where the map, as trained so far, is confidently free
+        # (SDF above the threshold in a voxel whose block holds at least Nt pairs; only voxels near
+        # surfaces are allocated, so this is space the map once held as surface, or next to one,
+        # and later saw free) is something that moved
+        # in, or an artifact (a mixed pixel between a foreground and a background): it gets no samples,
+        # so it neither draws a surface nor marks its voxel as hit (which would shield it from carving).
+        sdf, q_ok = query(static, state, scan.points)
+        pv = gfeat.leaf_voxel(scan.points, static.leaf)
+        prow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
+        pslot = jnp.where(prow >= 0, state.store.slot_of_voxel[jnp.maximum(prow, 0)], -1)
+        trained = (pslot >= 0) & (state.store.count[jnp.maximum(pslot, 0)] >= max(static.nt, 1))
+        # (once the decoder is frozen: before that the field is still finding its shape)
+        mature = state.frame >= static.freeze_after_frame
+        drop = scan.valid & q_ok & trained & (sdf > static.point_filter) & mature
+        n_filtered = jnp.sum(drop, dtype=jnp.int32)
+        scan = scan._replace(valid=scan.valid & ~drop)
     samples = sample_frame(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
                            trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=static.n_free,
                            free_band=static.free_band, free_label=static.free_label,
@@ -380,7 +402,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
             carved_store, carved = window.carve(
                 store, jnp.where(ray_ok, free_rows[:, static.n_free:], -1).reshape(-1), pts, lab,
                 ray_ok.reshape(-1) & sst.ok, state.frame, jax.random.fold_in(key, 2), margin=static.carve_margin,
-                max_samples=static.carve_samples, quiet_frames=static.ray_quiet)
+                max_samples=static.carve_samples, quiet_frames=static.ray_quiet, rule=static.carve_rule)
             store = carved_store
         pairs = window.total_pairs(store)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
@@ -390,7 +412,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
         new_feature_rows=n_new_c, blocks_needed=needed, blocks_free=free, window_blocks=store.window_n,
         store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
-        carved=carved,
+        carved=carved, points_filtered=n_filtered,
     )
     return state, stats
 

@@ -55,7 +55,8 @@ class N3Mapper:
                 "store_bytes": core.store_bytes(self.state.pool if self.static.uses_pool else self.state.store),
                 "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
                 "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
-                "free_dropped": int(fs.free_dropped), "carved": int(fs.carved)}
+                "free_dropped": int(fs.free_dropped), "carved": int(fs.carved),
+                "points_filtered": int(fs.points_filtered)}
         self.frames += 1
         self.timings.append(info)
         return info

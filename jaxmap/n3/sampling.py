@@ -58,7 +58,8 @@ def sample_frame(key, points_m, normals_m, valid, origin_m, *, label_mode: str, 
         raise ValueError(f"sampling.label_mode must be one of {LABEL_MODES}, got {label_mode!r}")
     if free_label_mode not in FREE_LABEL_MODES:
         raise ValueError(f"sampling.free_label_mode must be one of {FREE_LABEL_MODES}, got {free_label_mode!r}")
-    k_surf, k_free, k_ray = jax.random.split(key, 3)
+    k_surf, k_free = jax.random.split(key)
+    k_ray = jax.random.fold_in(k_free, 1)  # (not a 3-way split: the other two draws stay as they were)
     n = points_m.shape[0]
     ray = points_m - origin_m
     dist = jnp.linalg.norm(ray, axis=-1, keepdims=True)       # [N,1]

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 from jaxmap.grid.hashing import nonzero_fixed, prefix_sum
 
 BLOCK_POLICIES = ("reservoir", "ring")
+CARVE_RULES = ("replace", "raise")
 
 
 @flax.struct.dataclass
@@ -292,15 +293,17 @@ def total_pairs(store: PairStore):
 
 
 def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, margin: float, max_samples: int,
-          quiet_frames: int = 0):
+          quiet_frames: int = 0, rule: str = "replace"):
     """Free space replaces the stored pairs it contradicts (what moved away is erased, N3 Fig. 10).
 
     A free-space sample y with an honest label l_y (a lower bound of its distance to every surface)
     says f(y) >= l_y, so a 1-Lipschitz SDF has f(x) >= l_y - |x - y| everywhere. A pair (x, l) stored
     by an earlier frame in y's block with l < l_y - |x - y| - margin cannot hold any more: the surface
-    it described is gone (a car that drove on). Each sample replaces the most contradicted such pair
-    of its block with itself (a free-space pair of this frame); pairs of the current frame are never
-    replaced. True surfaces are safe as long as free labels are honest (`sampling.free_label_mode`
+    it described is gone (a car that drove on). `rule` "replace": each sample replaces the most
+    contradicted such pair of its block with itself (a free-space pair of this frame); "raise": every
+    contradicted pair keeps its place and its label rises to the bound, l_y - |x - y| - margin (the
+    largest over the frame's samples), no longer a surface pair. Pairs of the current frame are never
+    changed. True surfaces are safe as long as free labels are honest (`sampling.free_label_mode`
     projected, ray samples in voxels the frame hit dropped), `margin` covering the range noise; and
     a ray's label is only honest about its own hit (a ray to a far wall that passes 10 cm above the
     road claims tr), so blocks that a frame hit within the last `quiet_frames` frames are not carved:
@@ -310,7 +313,7 @@ def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, marg
     frame: [] int32; key: PRNG key. At most `max_samples` of the usable samples carve per frame (a
     fixed-size gather of [max_samples, P] pairs): those from a random start on, in scan order, so
     that over frames every part of the scan carves.
-    Returns (store, [] int32 pairs replaced).
+    Returns (store, [] int32 pairs changed).
     """
     s, p = store.n_slots, store.block_size
     v = store.slot_of_voxel.shape[0]
@@ -329,6 +332,18 @@ def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, marg
     d = jnp.linalg.norm(blk[..., :3] - y[:, None], axis=-1)                    # [m, P]
     held = (jnp.arange(p)[None] < store.count[sl][:, None]) & (store.frame[sl] < frame)
     excess = jnp.where(held, (ly[:, None] - d - margin) - blk[..., 3], 0.0)    # > 0: contradicted
+    if rule == "raise":
+        # every contradicted pair's label rises to the bound (the largest over this frame's samples)
+        bad = real[:, None] & (excess > 0)                                     # [m, P]
+        tgt = jnp.where(bad, sl[:, None], s)
+        cols = jnp.broadcast_to(jnp.arange(p)[None], bad.shape)
+        new = store.replace(
+            pairs=store.pairs.at[tgt, cols, 3].max(ly[:, None] - d - margin, mode="drop"),
+            surface=store.surface.at[tgt, cols].set(False, mode="drop"),
+        )
+        return new, jnp.sum(bad, dtype=jnp.int32)
+    if rule != "replace":
+        raise ValueError(f"window.carve_rule must be one of {CARVE_RULES}, got {rule!r}")
     j = jnp.argmax(excess, axis=1)
     hit = real & (jnp.take_along_axis(excess, j[:, None], 1)[:, 0] > 0)
     tgt = jnp.where(hit, sl, s)
