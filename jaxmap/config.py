@@ -120,6 +120,8 @@ class WindowConfig:
     carve_samples: int = 16384       # at most this many ray samples carve per frame (a fixed-size gather)
     carve_rule: str = "replace"      # "replace": a free sample takes the place of the pair it contradicts most;
                                      # "raise": every contradicted pair's label rises to the Lipschitz bound
+    carve_sign: bool = False         # also: every ray sample (it is outside every object) raises the pairs stored
+                                     # deeper inside than |x - y| + margin, in any voxel, recently hit or not
 
 
 @dataclass(frozen=True)

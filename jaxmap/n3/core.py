@@ -7,8 +7,9 @@
     sdf, valid = query(static, state, points_m)
 
 `integrate(static, state, scan, key)` samples the frame's training pairs, allocates leaf voxels and
-their corner feature rows (fixed-capacity hash tables), stores the pairs in their voxels' blocks and
-slides the window. `train(static, state, key, active)` runs the K iterations of hierarchical
+their corner feature rows (fixed-capacity hash tables), stores the pairs in their voxels' blocks,
+slides the window and lets the frame's free space carve the pairs it contradicts (`window.carve`:
+what moved away is erased). `train(static, state, key, active)` runs the K iterations of hierarchical
 sampling, loss (BCE + eikonal through `jax.grad`) and Adam in one `lax.fori_loop`. `step` is both
 in one compiled program with the state donated, so every table is updated in place.
 
@@ -74,6 +75,7 @@ class N3Static:
     carve_margin: float
     carve_samples: int
     carve_rule: str
+    carve_sign: bool            # every ray sample (sign only) raises the pairs stored deeper than it allows
     iters: int
     hierarchical: bool
     nv: int
@@ -106,7 +108,7 @@ class N3Static:
             point_filter=s.free_point_filter_m,
             free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
             free_label_mode=s.free_label_mode, carve=w.carve, carve_margin=w.carve_margin_m,
-            carve_samples=w.carve_samples, carve_rule=w.carve_rule,
+            carve_samples=w.carve_samples, carve_rule=w.carve_rule, carve_sign=w.carve_sign,
             iters=t.iters, hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
             batch_size=t.batch_size, freeze_after_frame=t.freeze_after_frame, reset_adam=t.reset_adam_each_frame,
             window_mode=w.mode, keyframes=w.keyframes if w.mode == "keyframe" else 0,
@@ -309,11 +311,11 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
     n_filtered = jnp.zeros((), jnp.int32)
     if static.point_filter > 0:
         # PIN-SLAM's dynamic filter: a scan point where the map, as trained so far, is confidently free
-        # (SDF above the threshold in a voxel whose block holds at least Nt pairs; only voxels near
-        # surfaces are allocated, so this is space the map once held as surface, or next to one,
-        # and later saw free) is something that moved
-        # in, or an artifact (a mixed pixel between a foreground and a background): it gets no samples,
-        # so it neither draws a surface nor marks its voxel as hit (which would shield it from carving).
+        # (SDF above the threshold in a voxel whose block holds at least Nt pairs: only voxels near
+        # surfaces are allocated, so this is space the map once held as surface, or next to one, and
+        # later saw free) is something that moved in, or an artifact (a mixed pixel between a
+        # foreground and a background): it gets no samples, so it neither draws a surface nor marks its
+        # voxel as hit (which would shield it from carving).
         sdf, q_ok = query(static, state, scan.points)
         pv = gfeat.leaf_voxel(scan.points, static.leaf)
         prow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
@@ -363,6 +365,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
     free_rows = hashing.lookup(voxels, vkeys[:, ns:].reshape(-1, 4)).reshape(n, nf)
     free_ok = valid[:, ns:] & (free_rows >= 0)
     ray_ok = jnp.zeros((n, 0), bool)
+    ray_any = free_ok[:, static.n_free:]   # every ray sample in an allocated voxel (before the honesty rules)
     if static.n_ray:
         # A ray sample in a voxel this frame hits may pass centimetres from a surface that is not its
         # own hit (a pole beside the ray), where its label (distance to its own hit's tangent plane)
@@ -399,11 +402,19 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         if static.carve and static.n_ray:
             lab = samples.labels.reshape(n, ns + nf)[:, ns + static.n_free:].reshape(-1)
             pts = samples.points.reshape(n, ns + nf, 3)[:, ns + static.n_free:].reshape(-1, 3)
-            carved_store, carved = window.carve(
+            store, carved = window.carve(
                 store, jnp.where(ray_ok, free_rows[:, static.n_free:], -1).reshape(-1), pts, lab,
                 ray_ok.reshape(-1) & sst.ok, state.frame, jax.random.fold_in(key, 2), margin=static.carve_margin,
                 max_samples=static.carve_samples, quiet_frames=static.ray_quiet, rule=static.carve_rule)
-            store = carved_store
+            if static.carve_sign:
+                # The one thing every ray sample is sure of is its sign: the ray passed through it, so it
+                # is outside every object, f(y) > 0, and f(x) > -|x - y| nearby. A pair stored deeper
+                # inside than that is gone, whatever hit the voxel lately (no quiet rule needed).
+                store, signed = window.carve(
+                    store, jnp.where(ray_any, free_rows[:, static.n_free:], -1).reshape(-1), pts,
+                    jnp.zeros_like(lab), ray_any.reshape(-1) & sst.ok, state.frame, jax.random.fold_in(key, 3),
+                    margin=static.carve_margin, max_samples=static.carve_samples, quiet_frames=-1, rule="raise")
+                carved = carved + signed
         pairs = window.total_pairs(store)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
                           voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool)
