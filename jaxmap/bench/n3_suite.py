@@ -66,6 +66,8 @@ def summarize(rows: dict, cities=None) -> dict:
     """Mean and worst of the metric rows {city: metrics} (of `cities` only, when given): worst = max of
     the distances, min of the ratios."""
     rows = {c: r for c, r in rows.items() if cities is None or c in cities}
+    if not rows:  # (a run of only the traffic / realistic cities)
+        return {"mean": {}, "worst": {}}
     vals = {k: np.array([r[k] for r in rows.values()], float) for k in KEYS}
     mean = {k: float(v.mean()) for k, v in vals.items()}
     worst = {k: float(v.max() if k.endswith("_cm") else v.min()) for k, v in vals.items()}
@@ -101,9 +103,10 @@ def print_suite(variant: str, rows: dict, floors: dict, signed: dict, extra: dic
     s = summarize(rows, clean)
     fl_rows = [floors[c] for c in clean if floors.get(c)]
     fl_mean = {k: float(np.mean([f[k] for f in fl_rows])) for k in ("chamfer_l1_cm", "f_score")} if fl_rows else {}
-    print(_line(f"mean ({len(clean)} clean)", s["mean"], f"   {fl_mean.get('chamfer_l1_cm', nan):>10.2f}"
+    if clean:
+        print(_line(f"mean ({len(clean)} clean)", s["mean"], f"   {fl_mean.get('chamfer_l1_cm', nan):>10.2f}"
                                                      f"{fl_mean.get('f_score', nan):>8.2f}"))
-    print(_line(f"worst ({len(clean)} clean)", s["worst"]))
+        print(_line(f"worst ({len(clean)} clean)", s["worst"]))
     for city, twin in TWINS.items():
         if city not in rows or twin not in rows:
             continue
