@@ -120,6 +120,28 @@ def print_suite(variant: str, rows: dict, floors: dict, signed: dict, extra: dic
               f"{eb.get('f_score_all', nan):.2f} %, ghost m2: {ghost}")
 
 
+def _record(path: str, name: str, city: str, summary: dict) -> dict:
+    """Merge one city's run of variant `name` into OUT/suite.json (the variant's other rows stay) and
+    return the variant's entry."""
+    m = summary.get("metrics", {})
+    results = json.load(open(path)) if os.path.isfile(path) else {}
+    v = results.get(name, {})
+    parts = {"rows": {k: m[k] for k in KEYS},
+             "floors": {k: x for k, x in (m.get("floor") or {}).items() if k in KEYS},
+             "signed_error_cm": m.get("signed_error_cm", {}),
+             "frames_held": summary.get("store_frames_held"),
+             "beyond_protocol": {k: m[k] for k in ("pred_far_share", "precision_all", "f_score_all", "ghost_area_m2")
+                                 if k in m}}
+    for key, val in parts.items():
+        merged = {**v.get(key, {}), city: val}
+        v[key] = {c: merged[c] for c in SUITE if c in merged}
+    v.update(summarize(v["rows"], CLEAN))
+    results[name] = v
+    with open(path, "w") as f:
+        json.dump(results, f, indent=1)
+    return v
+
+
 def main_suite(args, variants: dict, map_in_subprocess) -> int:
     from jaxmap.bench import base_overrides
 
@@ -135,30 +157,12 @@ def main_suite(args, variants: dict, map_in_subprocess) -> int:
     cache = os.path.join(out, "xla_cache")
     path = os.path.join(out, "suite.json")
     for name in names:
-        rows, floors, signed, held, extra = {}, {}, {}, {}, {}
         for city, d in cities.items():
             base = base_overrides(args, d)[1:]
             print(f"[bench] suite {name}: {city}", flush=True)
             s = map_in_subprocess(d, os.path.join(out, name, city), cache, base + variants[name])
-            m = s.get("metrics", {})
-            rows[city] = {k: m[k] for k in KEYS}
-            floors[city] = {k: v for k, v in (m.get("floor") or {}).items() if k in KEYS}
-            signed[city] = m.get("signed_error_cm", {})
-            held[city] = s.get("store_frames_held")
-            extra[city] = {k: m[k] for k in ("pred_far_share", "precision_all", "f_score_all", "ghost_area_m2")
-                           if k in m}
-        results = json.load(open(path)) if os.path.isfile(path) else {}  # (another bench may have written)
-        if only and name in results:  # a subset of the cities: the variant's other rows stay
-            old = results[name]
-            rows = {**old.get("rows", {}), **rows}
-            floors, signed = {**old.get("floors", {}), **floors}, {**old.get("signed_error_cm", {}), **signed}
-            held, extra = {**old.get("frames_held", {}), **held}, {**old.get("beyond_protocol", {}), **extra}
-            rows = {c: rows[c] for c in SUITE if c in rows}
-        results[name] = {"rows": rows, "floors": floors, "signed_error_cm": signed, "frames_held": held,
-                         "beyond_protocol": extra, **summarize(rows, CLEAN)}
-        with open(path, "w") as f:
-            json.dump(results, f, indent=1)
+            res = _record(path, name, city, s)  # after every city: a stopped suite keeps what it measured
         print()
-        print_suite(name, rows, floors, signed, extra)
+        print_suite(name, res["rows"], res["floors"], res["signed_error_cm"], res["beyond_protocol"])
         print()
     return 0

@@ -1,0 +1,28 @@
+"""`jaxmap bench n3 --suite` bookkeeping: rows merge city by city, twins compare, subsets print."""
+import json
+
+from jaxmap.bench import n3_suite as S
+
+
+def _summary(c_l1, ghost=None, far=2.0):
+    m = {k: 1.0 for k in S.KEYS}
+    m.update(chamfer_l1_cm=c_l1, pred_far_share=far, precision_all=90.0, f_score_all=91.0)
+    if ghost is not None:
+        m["ghost_area_m2"] = {"car": ghost, "total": ghost}
+    return {"metrics": m, "store_frames_held": 1.0}
+
+
+def test_rows_are_recorded_city_by_city_and_twins_compare(tmp_path, capsys):
+    path = str(tmp_path / "suite.json")
+    S._record(path, "jaxmap", "grid_s1_traffic", _summary(3.1, ghost=20.0, far=5.0))  # a traffic-only run first
+    v = S._record(path, "jaxmap", "grid_s1", _summary(3.0))
+    assert list(v["rows"]) == ["grid_s1", "grid_s1_traffic"]           # suite order, nothing lost
+    assert v["mean"]["chamfer_l1_cm"] == 3.0                            # the clean cities only
+    S._record(path, "band_only", "grid_s1", _summary(2.9))
+    saved = json.load(open(path))
+    assert set(saved) == {"jaxmap", "band_only"} and saved["jaxmap"]["rows"]["grid_s1"]["chamfer_l1_cm"] == 3.0
+    S.print_suite("jaxmap", v["rows"], v["floors"], v["signed_error_cm"], v["beyond_protocol"])
+    out = capsys.readouterr().out
+    assert "grid_s1_traffic / grid_s1: C-L1 3.10 / 3.00 cm (x1.033), far 5.00 / 2.00 %" in out
+    assert "ghost m2: car 20.0, total 20.0" in out and "mean (1 clean)" in out
+    assert S.summarize({"grid_s1_traffic": v["rows"]["grid_s1_traffic"]}, S.CLEAN) == {"mean": {}, "worst": {}}
