@@ -64,7 +64,7 @@ def ghost_figure(data_dir: str, meshes: dict, out_png: str, n_samples: int = 2_0
         ax.set_aspect("equal")
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0, 1, 0.95))  # (room for the titles)
     os.makedirs(os.path.dirname(os.path.abspath(out_png)), exist_ok=True)
     fig.savefig(out_png, dpi=90)
     plt.close(fig)
