@@ -149,3 +149,22 @@ def test_free_space_labels_never_exceed_the_true_distance_to_a_plane_or_a_sphere
     assert np.all(lab <= true + 1e-5) and np.all(lab > 0)
     flat, true_f = _free_labels_and_truth(2.0 * v, v, sensor, sphere, "truncation")
     assert np.any(flat > true_f + 0.02)
+
+
+def test_outlier_removal_drops_stray_returns_between_surfaces_and_keeps_the_surfaces():
+    """preprocess.remove_outliers: a wall and a ground plane seen from the sensor keep their points;
+    returns scattered in the free space between them (mixed pixels, stray ranges) are dropped."""
+    from jaxmap.preprocess import remove_outliers
+
+    rng = np.random.default_rng(3)
+    ground = np.stack([rng.uniform(2, 15, 6000), rng.uniform(-6, 6, 6000), np.full(6000, -1.7)], 1)
+    wall = np.stack([np.full(3000, 12.0), rng.uniform(-6, 6, 3000), rng.uniform(-1.7, 3, 3000)], 1)
+    stray = np.stack([rng.uniform(4, 11, 40), rng.uniform(-5, 5, 40), rng.uniform(-0.5, 2.5, 40)], 1)
+    pts = np.concatenate([ground, wall, stray]).astype(np.float32)
+    kept = remove_outliers(pts, 20, 6.0)
+    keys = {tuple(p) for p in kept}
+    assert sum(tuple(p) in keys for p in stray) <= 4                      # >= 90 % of the strays gone
+    # the surfaces stay, but not whole: 2.8 % of these random-spaced points go too (measured), which
+    # is why the filter is off by default (on the realistic suite city it cost 2 cm of completion)
+    assert sum(tuple(p) in keys for p in pts[:9000]) >= 0.95 * 9000
+    np.testing.assert_array_equal(remove_outliers(pts, 20, 0.0), pts)      # 0 = off
