@@ -51,6 +51,7 @@ import os
 
 import numpy as np
 
+from jaxmap import moving
 from jaxmap.errors import DataError
 
 log = logging.getLogger(__name__)
@@ -521,9 +522,7 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
     from jaxmap.geometry import transform_points
     from jaxmap.io import open_sequence
 
-    from jaxmap.moving import GHOST_INFLATE_M, inside_boxes, load_moving_objects
-
-    moving = load_moving_objects(data_dir) if exclude_moving else None
+    objects = moving.load_moving_objects(data_dir) if exclude_moving else None
     sel = dict(begin_frame=begin_frame, end_frame=end_frame)
     seq = open_sequence(data_dir, every_frame=every_frame, **sel)
     poses = np.asarray(seq.poses, dtype=np.float64)
@@ -546,8 +545,8 @@ def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: 
         if len(pts) == 0:
             continue
         w = transform_points(np.asarray(frame.pose, dtype=np.float64), pts)
-        if moving is not None:
-            w = w[~inside_boxes(w, moving.boxes_at(frame.index), GHOST_INFLATE_M)]
+        if objects is not None:
+            w = w[~moving.inside_boxes(w, objects.boxes_at(frame.index), moving.GHOST_INFLATE_M)]
             if len(w) == 0:
                 continue
         chunks.append(voxel_thin(w, voxel_m))
@@ -641,9 +640,7 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
         m.update(_surface_fields(v, f, gt, COMP_TRUNCATION_M, DOWN_SAMPLE_M))
     ghost_boxes = _ghost_boxes(data_dir, begin_frame, end_frame, every_frame) if ghost else None
     if ghost_boxes is not None:
-        from jaxmap.moving import ghost_area
-
-        m["ghost_area_m2"] = ghost_area(v, f, gtd["points"], ghost_boxes)
+        m["ghost_area_m2"] = moving.ghost_area(v, f, gtd["points"], ghost_boxes)
     has_classes = gtd["classes"] is not None and gtd["normals"] is not None and gtd["class_names"]
     if has_classes:
         m["signed_error_cm"] = signed_error_by_class(pred, gt, gtd["normals"][idx], gtd["classes"][idx],
@@ -661,9 +658,7 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
                 fv, ff = subdivide_mesh(*_mesh_arrays(gtd["mesh"]))
                 fm, fpred = _evaluate_culled(fv, ff, gt, **kw)
                 if ghost_boxes is not None:
-                    from jaxmap.moving import ghost_area
-
-                    fm["ghost_area_m2"] = ghost_area(fv, ff, gtd["points"], ghost_boxes)
+                    fm["ghost_area_m2"] = moving.ghost_area(fv, ff, gtd["points"], ghost_boxes)
                 if has_classes:
                     fm["signed_error_cm"] = signed_error_by_class(fpred, gt, gtd["normals"][idx],
                                                                   gtd["classes"][idx], gtd["class_names"])
@@ -679,14 +674,12 @@ def _ghost_boxes(data_dir: str, begin_frame: int, end_frame: int, every_frame: i
     """The moving objects' boxes of the selected frames (real frame numbers), or None when the sequence
     has no moving objects."""
     from jaxmap.io import open_sequence
-    from jaxmap.moving import load_moving_objects
 
-    moving = load_moving_objects(data_dir)
-    if moving is None:
+    objects = moving.load_moving_objects(data_dir)
+    if objects is None:
         return None
     seq = open_sequence(data_dir, begin_frame=begin_frame, end_frame=end_frame, every_frame=every_frame)
-    return moving.boxes_of_frames(int(i) for i in seq.indices)
-
+    return objects.boxes_of_frames(int(i) for i in seq.indices)
 
 def _floor_key(data_dir: str, gtd: dict, kw: dict, **selection) -> str:
     """What the floor depends on: the GT files (size and mtime), the scans' directory listing time and
@@ -695,10 +688,8 @@ def _floor_key(data_dir: str, gtd: dict, kw: dict, **selection) -> str:
     import hashlib
     import json
 
-    from jaxmap.moving import moving_objects_path
-
     files = [os.path.join(data_dir, "gt_points.ply"), gtd["mesh"], os.path.join(data_dir, "poses.txt"),
-             moving_objects_path(data_dir)]  # (moving objects: static-only observations, ghost area)
+             moving.moving_objects_path(data_dir)]  # (moving objects: static-only observations, ghost area)
     stat = [(os.path.basename(f), os.path.getsize(f), os.path.getmtime(f)) for f in files if f and os.path.isfile(f)]
     blob = json.dumps({"files": stat, "kw": kw, "sel": selection, "protocol": PROTOCOL}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:20]

@@ -319,7 +319,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         sdf, q_ok = query(static, state, scan.points)
         pv = gfeat.leaf_voxel(scan.points, static.leaf)
         prow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
-        pslot = jnp.where(prow >= 0, state.store.slot_of_voxel[jnp.maximum(prow, 0)], -1)
+        pslot = window.block_of(state.store, prow)
         trained = (pslot >= 0) & (state.store.count[jnp.maximum(pslot, 0)] >= max(static.nt, 1))
         # (once the decoder is frozen: before that the field is still finding its shape)
         mature = state.frame >= static.freeze_after_frame
@@ -372,12 +372,11 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         # would lie: such samples are dropped. What moved away is hit by nobody any more.
         v_cap = state.voxel_coord.shape[0]
         hit_voxel = jnp.zeros((v_cap,), bool).at[jnp.where(surf_rows >= 0, surf_rows, v_cap)].set(True, mode="drop")
-        ray_rows = jnp.maximum(free_rows[:, static.n_free:], 0)
-        ray_ok = free_ok[:, static.n_free:] & ~hit_voxel[ray_rows]
+        ray_ok = free_ok[:, static.n_free:] & ~hit_voxel[jnp.maximum(free_rows[:, static.n_free:], 0)]
         # ... and so are those in voxels an earlier frame hit within the last `ray_quiet` frames: a
         # static surface is hit again and again (a 10 Hz LiDAR's rings sweep the road), what moved
         # away is not, so only the space of what left is carved and trained free.
-        slot = state.store.slot_of_voxel[ray_rows]
+        slot = window.block_of(state.store, free_rows[:, static.n_free:])
         recent = (slot >= 0) & (state.store.last_hit[jnp.maximum(slot, 0)] >= state.frame - static.ray_quiet)
         ray_ok &= ~recent
         free_ok = free_ok.at[:, static.n_free:].set(ray_ok)

@@ -267,6 +267,13 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     return store, ids, n, StoreStats(ok, n_need, n_free)
 
 
+def block_of(store: PairStore, voxel_rows):
+    """The store slot (block) of each voxel row: voxel_rows [M] int32 (-1: no voxel) -> [M] int32, -1
+    where the voxel has no block (or there is no voxel)."""
+    v = store.slot_of_voxel.shape[0]
+    return jnp.where(voxel_rows >= 0, store.slot_of_voxel[jnp.clip(voxel_rows, 0, v - 1)], -1)
+
+
 def window_slots(in_window):
     """Compact list of window slots. in_window: [S] bool -> (ids [S] int32, n [] int32): `ids[:n]`."""
     return nonzero_fixed(in_window, in_window.shape[0], 0), in_window.sum().astype(jnp.int32)
@@ -316,8 +323,7 @@ def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, marg
     Returns (store, [] int32 pairs changed).
     """
     s, p = store.n_slots, store.block_size
-    v = store.slot_of_voxel.shape[0]
-    slot = jnp.where(use & (voxel_rows >= 0), store.slot_of_voxel[jnp.clip(voxel_rows, 0, v - 1)], -1)
+    slot = jnp.where(use, block_of(store, voxel_rows), -1)
     quiet = (store.last_hit[jnp.maximum(slot, 0)] < frame - quiet_frames)
     slot = jnp.where(quiet, slot, -1)
     total = slot.shape[0]
