@@ -1,21 +1,50 @@
 """The persistent XLA compilation cache, on for every jaxmap user (library and CLI).
 
-Compiled programs are kept in `~/.cache/jaxmap/xla`, so a second run (or a second process) skips
-the compiles. `JAXMAP_CACHE_DIR=/some/dir` moves the cache; `JAXMAP_CACHE_DIR=` (empty) turns it
+Compiled programs are kept in `~/.cache/jaxmap/xla/<host>`, so a second run (or a second process)
+skips the compiles. `<host>` is a fingerprint of the CPU (model and instruction-set flags): an XLA:CPU
+executable compiled for one CPU can abort the process that loads it on another, and a home directory
+is often shared by machines that differ (a cluster's NFS home, a CI image). `JAXMAP_CACHE_DIR=/some/dir` moves the cache; `JAXMAP_CACHE_DIR=` (empty) turns it
 off. It is enabled when `jaxmap` is imported; `enable()` can be called again with another path.
 The last measured compile time of each program is kept beside it, so logs can say how long a
 compile will take.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
+import platform
 
 log = logging.getLogger("jaxmap")
 
-DEFAULT_DIR = os.path.join(os.path.expanduser("~"), ".cache", "jaxmap", "xla")
+ROOT_DIR = os.path.join(os.path.expanduser("~"), ".cache", "jaxmap", "xla")
 _TIMES = "jaxmap_compile_seconds.json"
+
+
+def host_key(cpuinfo: str | None = None) -> str:
+    """12 hex digits naming this host's CPU: architecture, model name and instruction-set flags.
+
+    `cpuinfo` is the text of /proc/cpuinfo (read when None; absent off Linux, where the architecture
+    and `platform.processor()` name the CPU)."""
+    if cpuinfo is None:
+        try:
+            with open("/proc/cpuinfo") as f:
+                cpuinfo = f.read()
+        except OSError:
+            cpuinfo = ""
+    fields = {}
+    for line in cpuinfo.splitlines():
+        name, sep, value = line.partition(":")
+        name = name.strip()
+        # The first processor's lines are enough: the cores of one host share them.
+        if sep and name in ("model name", "flags", "Features", "CPU part") and name not in fields:
+            fields[name] = " ".join(sorted(value.split())) if name in ("flags", "Features") else value.strip()
+    text = "|".join([platform.machine(), platform.processor()] + [f"{k}={fields[k]}" for k in sorted(fields)])
+    return hashlib.sha1(text.encode()).hexdigest()[:12]
+
+
+DEFAULT_DIR = os.path.join(ROOT_DIR, host_key())
 
 
 def cache_dir() -> str:
