@@ -1,26 +1,9 @@
 """Session-wide fixtures: the --small synthetic scenes, generated once per test session (per xdist
 worker). Treat the returned directories as read-only; copy them before modifying anything.
 
-The session compiles into its own empty XLA cache, shared by the xdist workers (they inherit the
-environment) and removed at the end: a suite that loads executables from the user's cache tests that
-cache, not the code, and one written on another CPU aborts the process that loads it."""
-import os
-import shutil
-import tempfile
-
+The suite compiles into the user's per-CPU XLA cache (`jaxmap.compile_cache`), as `jaxmap` does:
+warm, it saves half the suite's time; per CPU, it never loads an executable compiled elsewhere."""
 import pytest
-
-if "JAXMAP_TEST_CACHE_DIR" not in os.environ:  # the controller (or a run without xdist) makes it
-    os.environ["JAXMAP_TEST_CACHE_DIR"] = tempfile.mkdtemp(prefix="jaxmap-test-xla-")
-    _OWN_CACHE = True
-else:
-    _OWN_CACHE = False
-os.environ["JAXMAP_CACHE_DIR"] = os.environ["JAXMAP_TEST_CACHE_DIR"]
-
-
-def pytest_sessionfinish(session):
-    if _OWN_CACHE:
-        shutil.rmtree(os.environ["JAXMAP_TEST_CACHE_DIR"], ignore_errors=True)
 
 
 @pytest.fixture(scope="session")
