@@ -49,7 +49,11 @@ class PreprocessConfig:
     min_z_m: float = -10.0           # height crop in the sensor frame
     max_z_m: float = 30.0            # upper height crop in the sensor frame
     vox_down_m: float = 0.05         # voxel downsample before sampling (0 = off)
-    normal_knn: int = 20             # neighbours for PCA normals
+    normal_knn: int = 20             # neighbours for PCA normals (grid: the fewest points a neighbourhood must hold)
+    normals: str = "knn"             # "knn" (k nearest neighbours, scipy on the host) or "grid" (hashed-grid cubes)
+    normal_cell_m: float = 0.15      # grid normals: the finest cell; a point's neighbourhood is 2 x 2 x 2 cells
+    normal_levels: int = 3           # grid normals: cell sizes normal_cell_m * 2^l, l < this (the finest with >= knn)
+    device: bool = False             # preprocess on the device, inside the frame program (needs normals: grid)
     outlier_mad: float = 0.0         # > 0: drop points whose range-scaled mean neighbour distance is this many
                                      # robust std above the scan's median (mixed pixels, stray returns); 0 = off
 
@@ -283,6 +287,14 @@ def _map_checks(c: "MapConfig", x: str):
         yield (f"{x}mesh.resolution_m", f"{x}grid.leaf_vox_size"), f"{x}mesh.resolution_m={c.mesh.resolution_m!r} {p}"
 
 
+def _host_preprocess_checks(c: Any, x: str):
+    """`jaxmap imt` and `jaxmap slam` preprocess on the host only."""
+    if c.preprocess.device:
+        yield (f"{x}preprocess.device",), (
+            f"{x}preprocess.device=true is for `jaxmap map` (N3) only; this command preprocesses on the host: "
+            "set it to false")
+
+
 def _data_checks(d: DataConfig, x: str):
     if not (d.end_frame == -1 or d.end_frame > d.begin_frame):
         yield (f"{x}end_frame", f"{x}begin_frame"), (
@@ -296,13 +308,28 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
             f"{x}max_range_m={p.max_range_m!r} must be greater than {x}min_range_m={p.min_range_m!r}")
     if not p.max_z_m > p.min_z_m:
         yield (f"{x}max_z_m", f"{x}min_z_m"), f"{x}max_z_m={p.max_z_m!r} must be greater than {x}min_z_m={p.min_z_m!r}"
+    if p.device and p.normals != "grid":
+        yield (f"{x}device", f"{x}normals"), (
+            f"{x}device=true needs {x}normals=grid (k nearest neighbours run on the host only); set one of them")
+    if p.device and p.outlier_mad > 0:
+        yield (f"{x}device", f"{x}outlier_mad"), (
+            f"{x}device=true cannot remove outliers ({x}outlier_mad={p.outlier_mad!r} runs on the host); "
+            f"set {x}device=false or {x}outlier_mad=0")
+    from jaxmap.preprocess import check_grid, key_span
+
+    if p.normals == "grid" and not check_grid(p.max_range_m, p.normal_cell_m):
+        yield (f"{x}normal_cell_m", f"{x}max_range_m"), (
+            f"{x}normal_cell_m={p.normal_cell_m!r} is too fine for {x}max_range_m={p.max_range_m!r}: "
+            f"{key_span(p.max_range_m, p.normal_cell_m)}^3 cells do not fit 32-bit keys; use a cell of at least "
+            f"{p.max_range_m / 600:.3g} m")
 
 
 RULES: dict[type, dict[str, Rule]] = {
     DataConfig: {"kind": one_of(*DATA_KINDS), "begin_frame": at_least(0), "every_frame": at_least(1),
                  "path": NONEMPTY},
     PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3),
-                       "outlier_mad": at_least(0.0)},
+                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid"),
+                       "normal_cell_m": above(0.0), "normal_levels": at_least(1)},
     SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),
@@ -335,6 +362,7 @@ RULES: dict[type, dict[str, Rule]] = {
 
 CHECKS: dict[type, list[Callable[[Any, str], Any]]] = {
     MapConfig: [_map_checks],
+    ImtConfig: [_host_preprocess_checks],
     DataConfig: [_data_checks],
     PreprocessConfig: [_preprocess_checks],
 }

@@ -6,8 +6,14 @@ All functions take and return sensor-frame arrays; the mapper moves them to the 
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from scipy.spatial import cKDTree
+
+
+MIN_PLANE_POINTS = 3   # grid normals: neighbourhoods with fewer points face the sensor
+DOWNSAMPLE_TIE = 1e-4   # voxel_downsample: distances to the mean within this many voxels count as equal
 
 
 def crop(points_s: np.ndarray, min_range: float, max_range: float, min_z: float, max_z: float) -> np.ndarray:
@@ -21,27 +27,36 @@ def crop(points_s: np.ndarray, min_range: float, max_range: float, min_z: float,
 
 
 def voxel_downsample(points: np.ndarray, voxel: float) -> np.ndarray:
-    """One point per voxel of side `voxel`: the point closest to the voxel's mean (deterministic).
+    """One point per voxel of side `voxel`: the point closest to the voxel's mean, the lowest index
+    among those within `DOWNSAMPLE_TIE` * voxel of the closest (deterministic: a voxel of two points
+    has two equidistant ones, and float rounding must not pick between them). The reference of
+    `jaxmap.preprocess_device.voxel_keep`.
 
-    points: [N,3] float32 -> [M,3] float32, M <= N; voxel <= 0 returns the input.
+    points: [N,3] float32 -> [M,3] float32, M <= N, in input order; voxel <= 0 returns the input.
     """
     if voxel <= 0 or len(points) == 0:
         return points
-    q = np.floor(points / voxel).astype(np.int64)
+    points = np.asarray(points, np.float32)
+    q = np.floor(points / np.float32(voxel)).astype(np.int64)
+    # Coordinates relative to the voxel's corner, as the device computes them: float32 keeps them exact
+    # to ~1e-9 m however far the voxel is from the sensor.
+    rel = (points - q.astype(np.float32) * np.float32(voxel)).astype(np.float64)
     q -= q.min(axis=0)
     span = q.max(axis=0) + 1
     # One int64 key per voxel: a 1-D unique is several times faster than np.unique(axis=0).
     keys = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
     _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
-    means = np.stack([np.bincount(inverse, weights=points[:, d], minlength=len(counts)) for d in range(3)], 1)
+    means = np.stack([np.bincount(inverse, weights=rel[:, d], minlength=len(counts)) for d in range(3)], 1)
     means /= counts[:, None]
-    d = np.linalg.norm(points - means[inverse], axis=1)
-    # Per voxel, the index of the smallest distance: sort by (voxel, distance), take firsts.
-    order = np.lexsort((d, inverse))
-    first = np.ones(len(order), bool)
-    first[1:] = inverse[order][1:] != inverse[order][:-1]
-    return points[np.sort(order[first])]
+    d = np.linalg.norm(rel - means[inverse], axis=1)
+    best = np.full(len(counts), np.inf)
+    np.minimum.at(best, inverse, d)
+    near = d <= best[inverse] + DOWNSAMPLE_TIE * voxel
+    first = np.full(len(counts), len(points))
+    idx = np.nonzero(near)[0]
+    np.minimum.at(first, inverse[idx], idx)
+    return points[np.sort(first)]
 
 
 def remove_outliers(points_s: np.ndarray, k: int = 20, n_mad: float = 6.0) -> np.ndarray:
@@ -92,6 +107,71 @@ def estimate_normals(points_s: np.ndarray, k: int = 20) -> tuple[np.ndarray, np.
     return normals.astype(np.float32), planarity.astype(np.float32)
 
 
+def key_span(max_range: float, cell: float) -> int:
+    """Cells per axis of the packed cell keys of points within `max_range` (one cell of margin and one
+    for the 2 x 2 x 2 cube's far side on each side)."""
+    return 2 * int(math.ceil(max_range / cell)) + 4
+
+
+def check_grid(max_range: float, cell: float) -> bool:
+    """Whether cell keys of the finest level fit int32 (span^3 < 2^31)."""
+    return key_span(max_range, cell) ** 3 < 2**31
+
+
+def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """PCA normals over hashed-grid neighbourhoods, oriented towards the sensor at the origin: the
+    reference (float64) of `jaxmap.preprocess_device.grid_normals`, whose docstring defines them.
+
+    points_s: [N,3] float32 sensor frame -> (normals [N,3] float32 unit, neighbours [N] int).
+    """
+    n = len(points_s)
+    if n == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0,), np.int64)
+    p = points_s.astype(np.float64)
+    chosen_n = np.zeros(n, np.int64)
+    chosen_cov = np.zeros((n, 3, 3))
+    done = np.zeros(n, bool)
+    offsets = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+    for lv in range(levels):
+        c = cell * (1 << lv)
+        # Cell coordinates as float32 computes them, so both sides put a point in the same cell.
+        q = np.floor(points_s / np.float32(c)).astype(np.int64)
+        cells, inverse = np.unique(q, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        cnt = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
+        s1 = np.stack([np.bincount(inverse, p[:, d], len(cells)) for d in range(3)], 1)
+        s2 = np.stack([np.bincount(inverse, p[:, a] * p[:, b], len(cells)) for a in range(3) for b in range(3)], 1)
+        index = {tuple(cc): i for i, cc in enumerate(cells)}
+        base = np.floor(points_s / np.float32(c) - np.float32(0.5)).astype(np.int64)
+        tot_n, tot_1, tot_2 = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 9))
+        for o in offsets:
+            j = np.array([index.get(tuple(cc), -1) for cc in base + o])
+            hit = j >= 0
+            tot_n[hit] += cnt[j[hit]]
+            tot_1[hit] += s1[j[hit]]
+            tot_2[hit] += s2[j[hit]]
+        mean = tot_1 / np.maximum(tot_n, 1)[:, None]
+        cov = (tot_2 / np.maximum(tot_n, 1)[:, None]).reshape(n, 3, 3) - mean[:, :, None] * mean[:, None, :]
+        take = ~done & ((tot_n >= k) | (lv == levels - 1))
+        chosen_n[take], chosen_cov[take] = tot_n[take], cov[take]
+        done |= take
+    _, evecs = np.linalg.eigh(chosen_cov)
+    normals = evecs[:, :, 0]
+    flip = np.einsum("ni,ni->n", normals, -p) < 0
+    normals[flip] = -normals[flip]
+    # Fewer than 3 points span no plane: the direction to the sensor is the only honest guess.
+    few = chosen_n < MIN_PLANE_POINTS
+    normals[few] = -p[few] / np.maximum(np.linalg.norm(p[few], axis=1, keepdims=True), 1e-9)
+    return normals.astype(np.float32), chosen_n
+
+
+def normals_of(points_s: np.ndarray, cfg) -> np.ndarray:
+    """Normals [M,3] float32 of sensor-frame points [M,3] by `cfg.normals` (a PreprocessConfig)."""
+    if cfg.normals == "grid":
+        return grid_normals(points_s, cfg.normal_cell_m, cfg.normal_levels, cfg.normal_knn)[0]
+    return estimate_normals(points_s, cfg.normal_knn)[0]
+
+
 def preprocess_scan(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
     """Crop, downsample and estimate normals. cfg: a PreprocessConfig.
 
@@ -101,5 +181,4 @@ def preprocess_scan(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
     pts = voxel_downsample(pts, cfg.vox_down_m)
     if cfg.outlier_mad > 0:
         pts = remove_outliers(pts, cfg.normal_knn, cfg.outlier_mad)
-    normals, _ = estimate_normals(pts, cfg.normal_knn)
-    return pts.astype(np.float32), normals
+    return pts.astype(np.float32), normals_of(pts, cfg)

@@ -45,15 +45,13 @@ log = logging.getLogger("jaxmap")
 
 def _register_rules() -> None:
     """Value rules of the front end's config keys, checked at load (see `jaxmap.config.RULES`)."""
-    from jaxmap.config import at_least, one_of, register_rules
+    from jaxmap.config import _host_preprocess_checks, at_least, one_of, register_rules
     from jaxmap.slam.frontend import EDGE_INFORMATION
     from jaxmap.slam.odometry import ODOMETRY_METHODS, OdometryConfig
 
     register_rules(OdometryConfig, method=one_of(*ODOMETRY_METHODS), max_iter=at_least(1), normals_k=at_least(3))
     register_rules(FrontEndConfig, edge_information=one_of(*EDGE_INFORMATION))
-
-
-_register_rules()
+    register_rules(SlamConfig, checks=[_host_preprocess_checks])
 
 
 @dataclass(frozen=True)
@@ -75,6 +73,9 @@ class SlamConfig:
     def imt(self) -> ImtConfig:
         return ImtConfig(data=self.data, preprocess=self.preprocess, map=self.map, mesh=self.mesh, eval=self.eval,
                          output=self.output, progress=self.progress)
+
+
+_register_rules()
 
 
 def _bar(total, desc, enabled):

@@ -1,0 +1,120 @@
+"""Scan preprocessing on the device (`jaxmap.preprocess_device`, `preprocess.device`) against its numpy
+reference (`jaxmap.preprocess`): the same kept points, normals within 5 degrees on 99 % of them, and
+the frame program that runs it maps what the host path maps."""
+import jax
+import numpy as np
+
+from analytic_lidar import corridor_scan, hall_scan, pose_at
+from jaxmap import preprocess as ref
+from jaxmap import preprocess_device as dev
+from jaxmap.config import load_config
+from jaxmap.io import open_sequence
+from jaxmap.n3 import scan
+from jaxmap.n3.mapper import N3Mapper
+
+
+def _angles_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0)))
+
+
+def _device(points, cfg, pad=4096):
+    """Device preprocessing of sensor-frame points [N, 3] padded with `pad` invalid rows of garbage."""
+    n = len(points)
+    padded = np.concatenate([points, np.random.default_rng(0).normal(0, 5, (pad, 3))]).astype(np.float32)
+    valid = np.arange(n + pad) < n
+    f = jax.jit(lambda p, v: dev.preprocess_scan(p, v, cfg, n + pad))
+    pts, nrm, ok, kept = (np.asarray(x) for x in f(padded, valid))
+    return pts[ok], nrm[ok], int(kept)
+
+
+def test_device_preprocessing_keeps_the_reference_points_and_its_normals(small_city):
+    cfg = load_config("configs/city.yaml", ["preprocess.normals=grid"]).preprocess
+    seq = open_sequence(str(small_city))
+    for i in (0, 7):
+        raw = np.asarray(seq.frame(i).points, np.float32)
+        want_p, want_n = ref.preprocess_scan(raw, cfg)
+        got_p, got_n, kept = _device(raw, cfg)
+        assert kept == len(want_p) and len(want_p) > 1000
+        np.testing.assert_array_equal(got_p, want_p)       # the same points, in the same order
+        ang = _angles_deg(got_n, want_n)                   # oriented alike: no abs()
+        assert np.mean(ang < 5.0) >= 0.99, np.percentile(ang, [50, 99])
+
+
+def test_voxel_downsample_picks_the_same_point_of_two_equidistant_ones():
+    # Two points per voxel are equidistant from their mean: float rounding must not choose; both
+    # implementations keep the lower index. A third point at the mean wins in both.
+    rng = np.random.default_rng(1)
+    cells = rng.choice(600**3, 500, replace=False)                     # 500 distinct voxels
+    base = (np.stack(np.unravel_index(cells, (600, 600, 600)), 1) - 300) * 0.05 + 0.025
+    d = rng.uniform(-0.02, 0.02, (500, 3))
+    pts = np.concatenate([base + d, base - d]).astype(np.float32)
+    keep = np.asarray(jax.jit(lambda p, v: dev.voxel_keep(p, v, 0.05))(pts, np.ones(len(pts), bool)))
+    np.testing.assert_array_equal(pts[keep], ref.voxel_downsample(pts, 0.05))
+    assert keep[:500].all() and not keep[500:].any()
+    three = np.concatenate([pts, base.astype(np.float32)])
+    keep3 = np.asarray(jax.jit(lambda p, v: dev.voxel_keep(p, v, 0.05))(three, np.ones(len(three), bool)))
+    assert keep3[1000:].all() and keep3.sum() == 500
+    np.testing.assert_array_equal(three[keep3], ref.voxel_downsample(three, 0.05))
+
+
+def test_grid_normals_are_the_planes_normals_facing_the_sensor():
+    # A hall's ground, walls and ends: away from the edges where two planes meet, every normal is its
+    # plane's, oriented towards the sensor (a wrong moment shift or orientation fails this).
+    sensor = np.array([1.0, 0.5, 1.7])
+    p_s = hall_scan(sensor, max_range=12.0)
+    cfg = load_config("configs/city.yaml", ["preprocess.normals=grid", "preprocess.max_range_m=12"]).preprocess
+    p_s = ref.voxel_downsample(ref.crop(p_s, 1.0, 12.0, -10, 30), 0.05)
+    n_dev = np.asarray(jax.jit(lambda p, v: dev.grid_normals(p, v, cell=0.15, levels=3, k=20, max_range=12.0)[0])(
+        p_s, np.ones(len(p_s), bool)))
+    w = p_s + sensor
+    true = np.zeros_like(w)
+    true[:, 2] = 1.0                                                   # ground
+    side = np.abs(np.abs(w[:, 1]) - 6.0) < 1e-3
+    true[side] = np.stack([np.zeros(side.sum()), -np.sign(w[side, 1]), np.zeros(side.sum())], 1)
+    end = np.abs(np.abs(w[:, 0]) - 9.0) < 1e-3
+    true[end] = np.stack([-np.sign(w[end, 0]), np.zeros(end.sum()), np.zeros(end.sum())], 1)
+    # more than 1.3 m (the coarsest cube's half-width plus a cell) from every edge between planes
+    far = (np.minimum(6.0 - np.abs(w[:, 1]), 9.0 - np.abs(w[:, 0])) > 1.3) | (~side & ~end & (w[:, 2] < 0.01)
+                                                                            & (np.abs(w[:, 1]) < 4.7)
+                                                                            & (np.abs(w[:, 0]) < 7.7))
+    far &= (w[:, 2] > 1.3) | (w[:, 2] < 0.01)
+    assert far.sum() > 2000
+    ang = _angles_deg(n_dev[far], true[far])
+    assert np.max(ang) < 2.0, np.percentile(ang, [50, 99, 100])
+    n_ref, _ = ref.grid_normals(p_s, 0.15, 3, 20)
+    assert np.mean(_angles_deg(n_dev, n_ref) < 5.0) >= 0.99
+
+
+def test_smallest_eigenvector_equals_eigh():
+    rng = np.random.default_rng(2)
+    q, _ = np.linalg.qr(rng.normal(size=(2000, 3, 3)))
+    lam = np.sort(rng.uniform(1e-6, 1e-2, (2000, 3)), axis=1)
+    lam[:, 1:] += 1e-3                                                # a simple smallest eigenvalue
+    cov = (q * lam[:, None, :]) @ q.transpose(0, 2, 1)
+    v = np.asarray(jax.jit(dev.smallest_eigenvector)(cov.astype(np.float32)))
+    want = np.linalg.eigh(cov)[1][:, :, 0]
+    assert np.max(np.degrees(np.arccos(np.clip(np.abs(np.sum(v * want, 1)), 0, 1)))) < 0.5
+
+
+SMALL = ["train.iters=6", "train.nv=128", "train.np_per_voxel=8", "preprocess.max_range_m=10.0",
+         "preprocess.vox_down_m=0.1", "window.initial_blocks=4096", "mesh.min_component_faces=0",
+         "preprocess.normals=grid"]
+
+
+def test_frame_program_maps_what_the_host_path_maps_and_grows_the_scan_rows():
+    frames = [(corridor_scan(1.5 * i, max_range=10.0), pose_at(1.5 * i)) for i in range(4)]
+    host = N3Mapper(load_config("configs/city.yaml", SMALL + ["preprocess.device=false"]))
+    on_dev = N3Mapper(load_config("configs/city.yaml", SMALL + ["preprocess.device=true"]))
+    short = N3Mapper(load_config("configs/city.yaml", SMALL + ["preprocess.device=true"]))
+    short._headroom["scan_rows"] = 256         # too few: the first frame must grow them and run again
+    for i, (pts, pose) in enumerate(frames):
+        want = len(scan.preprocess(pts, pose, host.cfg.preprocess, i)[0])
+        a, b, c = host.add_frame(pts, pose), on_dev.add_frame(pts, pose), short.add_frame(pts, pose)
+        assert a["points"] == b["points"] == c["points"] == want
+        assert c["passes"] == (2 if i == 0 else 1) and b["passes"] == 1
+    # The device's float32 normals differ from the host's float64 ones in the last bits: the maps agree
+    # to a voxel or two, and the run that grew its rows is the run that had them from the start.
+    assert abs(b["leaf_voxels"] - a["leaf_voxels"]) <= 0.01 * a["leaf_voxels"]
+    assert abs(b["loss"] - a["loss"]) <= 0.05 * a["loss"]
+    for x, y in zip(jax.tree_util.tree_leaves(on_dev.state), jax.tree_util.tree_leaves(short.state)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
