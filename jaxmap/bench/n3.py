@@ -9,6 +9,8 @@ compile time and count, peak RSS of the mapping (getrusage, before meshing) and 
 Quality: jaxmap against the TSDF baseline and the N3 paper's ablations (Table III), one row each:
 Acc / Comp / C-L1 / Comp. ratio / F-score at 10 cm within the 20 m the mapper sees.
 
+`--only memory`: where the bytes are (`jaxmap.bench.n3_memory`), for the host and the device preprocessing.
+
 `--long`: the 1.1 km drive of `jaxmap synth city --long` (1025 frames): per-frame medians over
 frames 100-200 and 900-1000, and the store's pairs and the feature rows every 100 frames (the
 store must stay flat once the window is full; features grow only with the explored area).
@@ -36,6 +38,9 @@ VARIANTS = {
     "ray_only": ["sampling.free_sample_n=0"],           # the paper's rule: every free sample on the whole ray
     "sigma_0.1": ["sampling.sigma_m=0.1"],              # the paper's tr / 3
     "outliers": ["preprocess.outlier_mad=6"],           # range-scaled statistical outlier removal
+    # the scan preprocessed inside the frame program (grid normals), and the host path it replaces
+    "device": ["preprocess.device=true", "preprocess.normals=grid"],
+    "host_knn": ["preprocess.device=false", "preprocess.normals=knn"],
     "projective": ["sampling.label_mode=projective"],
     "corrected": ["sampling.label_mode=corrected"],
     "replay": ["window.mode=replay"],
@@ -124,8 +129,12 @@ def main(args) -> int:
     base = base_overrides(args, data)[1:]  # the data path goes on the command line
     names = list(DEFAULT_VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
     for name in names:
-        if name not in VARIANTS and name not in ("tsdf", "speed"):
-            raise SystemExit(f"unknown variant {name!r}; choose from speed, tsdf, {', '.join(VARIANTS)}")
+        if name not in VARIANTS and name not in ("tsdf", "speed", "memory"):
+            raise SystemExit(f"unknown variant {name!r}; choose from speed, memory, tsdf, {', '.join(VARIANTS)}")
+    if names == ["memory"]:
+        from jaxmap.bench.n3_memory import main as main_memory
+
+        return main_memory(args, data, base, VARIANTS)
     results, speed = {}, {}
 
     if not args.only or "speed" in names or "jaxmap" in names:

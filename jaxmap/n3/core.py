@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxmap import hostmem
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
 from jaxmap.n3 import adam, hierarchical, pool, window
@@ -92,6 +93,7 @@ class N3Static:
     max_load: float
     mask_level: int
     min_leaf_corners: int
+    preprocess: object = None   # the PreprocessConfig when scans are preprocessed inside the frame program
     # Corner allocations per `integrate` pass (a static batch of L*8 keys each): a typical frame
     # of the city brings ~1700 new voxels (max ~6000); the first frame ~20000 takes 3 passes.
     new_voxels_per_pass: int = 8192
@@ -115,6 +117,7 @@ class N3Static:
             block_policy=w.block_policy, pairs_per_frame=w.pairs_per_frame,
             radius_vox=int(math.ceil(cfg.preprocess.max_range_m / leaf)), max_load=g.max_load,
             mask_level=m.mask_level, min_leaf_corners=m.min_leaf_corners,
+            preprocess=cfg.preprocess if cfg.preprocess.device else None,
         )
 
     @property
@@ -162,6 +165,16 @@ class ScanBatch(NamedTuple):
     sensor: jax.Array    # [3] float32 sensor position, map frame
 
 
+class RawScan(NamedTuple):
+    """One raw scan in the sensor frame, padded to a bucket size N, and its pose in the map frame
+    (`preprocess.device`: the frame program crops, downsamples and estimates normals itself)."""
+
+    points: jax.Array       # [N, 3] float32 sensor frame
+    valid: jax.Array        # [N] bool, False for padding
+    rotation: jax.Array     # [3, 3] float32 R_map_sensor
+    translation: jax.Array  # [3] float32 sensor position, map frame
+
+
 class FrameStats(NamedTuple):
     """What the host reads once per frame (one `jax.device_get`)."""
 
@@ -181,6 +194,8 @@ class FrameStats(NamedTuple):
     free_dropped: jax.Array     # [] int32 free-space samples outside every allocated voxel (train nothing)
     carved: jax.Array           # [] int32 stored pairs that this frame's free space contradicted and changed
     points_filtered: jax.Array  # [] int32 scan points dropped where the map was confidently free
+    scan_points: jax.Array      # [] int32 points of the preprocessed scan
+    scan_overflow: jax.Array    # [] bool: the preprocessed scan has more points than its rows (grow, retry)
 
 
 class TrainStats(NamedTuple):
@@ -304,8 +319,11 @@ def origin_world(static: N3Static, state: N3State) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------
 
 
-def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N3State, FrameStats]:
-    """Put one scan into the map (one pass; see the module docstring for `ok` and retries)."""
+def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True) -> tuple[N3State, FrameStats]:
+    """Put one scan into the map (one pass; see the module docstring for `ok` and retries).
+    fits: [] bool, False when the preprocessed scan did not fit its rows (nothing is stored)."""
+    fits = jnp.asarray(fits, bool)
+    scan = scan._replace(valid=scan.valid & fits)
     n = scan.points.shape[0]
     ns, nf = static.n_surface, static.n_free + static.n_ray   # nf: free samples of both kinds
     n_filtered = jnp.zeros((), jnp.int32)
@@ -382,7 +400,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         free_ok = free_ok.at[:, static.n_free:].set(ray_ok)
     rows = jnp.concatenate([jnp.where(valid[:, :ns], surf_rows.reshape(n, ns), -1),
                             jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
-    allowed = ~v_over & ~c_over & (pending == 0)
+    allowed = ~v_over & ~c_over & (pending == 0) & fits
     carved = jnp.zeros((), jnp.int32)
     center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
     if static.uses_pool:  # the replay / keyframe ablations: the frame's pairs go to the flat pool
@@ -422,7 +440,8 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key) -> tuple[N
         pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
         new_feature_rows=n_new_c, blocks_needed=needed, blocks_free=free, window_blocks=store.window_n,
         store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
-        carved=carved, points_filtered=n_filtered,
+        carved=carved, points_filtered=n_filtered, scan_points=jnp.sum(scan.valid, dtype=jnp.int32),
+        scan_overflow=~fits,
     )
     return state, stats
 
@@ -500,6 +519,44 @@ def step(static: N3Static, state: N3State, scan: ScanBatch):
     state, fstats = integrate(static, state, scan, k_sample)
     state, tstats = train(static, state, k_train, active=fstats.ok)
     return state.replace(key=jnp.where(fstats.ok, key, state.key)), fstats, tstats
+
+
+def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, jax.Array, jax.Array]:
+    """Crop, downsample and normals of a raw scan (`jaxmap.preprocess_device`), its kept points in
+    their input order moved to the map frame and packed into `rows` rows (padding as `scan.to_batch`).
+    Returns (ScanBatch [rows], points kept [] int32, overflow [] bool: more kept points than rows)."""
+    from jaxmap.preprocess_device import preprocess_scan
+
+    pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw.valid, static.preprocess, rows)
+    # Elementwise, not a matmul: a GPU's float32 matmul may round through TF32 (centimetres at 20 m).
+    pts = jnp.sum(pts_s[:, None, :] * raw.rotation[None], axis=-1) + raw.translation
+    nrm = jnp.sum(nrm_s[:, None, :] * raw.rotation[None], axis=-1)
+    pts = jnp.where(valid[:, None], pts, raw.translation + 1.0)
+    nrm = jnp.where(valid[:, None], nrm, np.array([0.0, 0.0, 1.0], np.float32))
+    return ScanBatch(pts, nrm, valid, raw.translation), kept, kept > rows
+
+
+@functools.partial(jax.jit, static_argnums=(0, 3), donate_argnums=1)
+def step_raw(static: N3Static, state: N3State, raw: RawScan, rows: int):
+    """`step` of a raw scan: preprocessing, integrate and train in one compiled program. When the
+    preprocessed scan has more points than `rows`, nothing is stored or trained (`scan_overflow`)."""
+    scan, kept, overflow = prepare_scan(static, raw, rows)
+    key, k_sample, k_train = jax.random.split(state.key, 3)
+    state, fstats = integrate(static, state, scan, k_sample, fits=~overflow)
+    state, tstats = train(static, state, k_train, active=fstats.ok)
+    fstats = fstats._replace(scan_points=kept)
+    return state.replace(key=jnp.where(fstats.ok, key, state.key)), fstats, tstats
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def count_kept(static: N3Static, raw: RawScan):
+    """Points a raw scan keeps after crop and downsample (sizes the first frame's rows)."""
+    from jaxmap.preprocess_device import crop_mask, voxel_keep
+
+    p = static.preprocess
+    keep = crop_mask(raw.points, raw.valid, min_range=p.min_range_m, max_range=p.max_range_m, min_z=p.min_z_m,
+                     max_z=p.max_z_m)
+    return jnp.sum(voxel_keep(raw.points, keep, p.vox_down_m), dtype=jnp.int32)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -620,10 +677,12 @@ _EXECUTABLES: dict = {}  # (static, capacities, scan bucket) -> compiled `step`
 COMPILE_SECONDS: list = []  # seconds of every compile of `step` in this process (benchmarks read it)
 
 
-def compiled_step(static: N3Static, state: N3State, batch: ScanBatch):
-    """The compiled `step` for these shapes, compiled (and logged) on first use. Compiling ahead of
-    time, instead of on the first call, lets the log say what the wait is before it starts."""
-    key = (static, Capacities.of(state), batch.points.shape[0])
+def compiled_step(static: N3Static, state: N3State, batch, rows: int = 0):
+    """The compiled `step` (a ScanBatch) or `step_raw` (a RawScan, `rows` preprocessed rows) for these
+    shapes, compiled (and logged) on first use. Compiling ahead of time, instead of on the first
+    call, lets the log say what the wait is before it starts. Returns fn(state, batch)."""
+    raw = isinstance(batch, RawScan)
+    key = (static, Capacities.of(state), batch.points.shape[0], rows if raw else 0)
     fn = _EXECUTABLES.get(key)
     if fn is None:
         from jaxmap import compile_cache
@@ -632,8 +691,9 @@ def compiled_step(static: N3Static, state: N3State, batch: ScanBatch):
         log.info("compiling the mapper (one time for these table sizes%s)",
                  f", up to about {est:.0f} s" if est else ", usually 5-30 s the first time on a machine")
         t0 = time.perf_counter()
-        fn = step.lower(static, state, batch).compile()
+        fn = (step_raw.lower(static, state, batch, rows) if raw else step.lower(static, state, batch)).compile()
         secs = time.perf_counter() - t0
+        hostmem.trim()  # the compiler's ~1 GB of freed heap back to the system, not held for the drive
         compile_cache.record("n3_step", secs)
         COMPILE_SECONDS.append(secs)
         log.info("compiled in %.1f s", secs)
@@ -646,13 +706,21 @@ def run_frame(static: N3Static, state: N3State, batch: ScanBatch, headroom: dict
     """Integrate and train one frame, growing capacities as its stats ask (host side).
 
     Returns (state, FrameStats, TrainStats, passes) as numpy values; `headroom` (the largest
-    per-pass allocations seen) is updated in place and used to grow before a table is full.
+    per-pass allocations seen) is updated in place and used to grow before a table is full. A
+    RawScan is preprocessed into `headroom["scan_rows"]` rows, grown when its points do not fit.
     """
+    from jaxmap.n3.scan import bucket_for
+
     passes = 0
     while True:
-        state, fs, ts = compiled_step(static, state, batch)(state, batch)
+        rows = headroom.get("scan_rows", 0)
+        state, fs, ts = compiled_step(static, state, batch, rows)(state, batch)
         fs, ts = jax.device_get((fs, ts))  # the one host sync of a pass
         passes += 1
+        if bool(fs.scan_overflow):
+            headroom["scan_rows"] = bucket_for(int(fs.scan_points))
+            log.info("growing the preprocessed scan %d -> %d rows", rows, headroom["scan_rows"])
+            continue
         if int(fs.voxels) > 2 * int(fs.new_voxels):  # not the first frames, where everything is new
             headroom["voxels"] = max(headroom.get("voxels", 0), int(fs.new_voxels))
             headroom["feature_rows"] = max(headroom.get("feature_rows", 0), int(fs.new_feature_rows))

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import time
 
+import jax
 import numpy as np
 
+from jaxmap import hostmem
 from jaxmap.config import MapConfig
 from jaxmap.n3 import core, scan
 from jaxmap.n3.query import extract_mesh_of, query_world
@@ -21,34 +23,66 @@ class N3Mapper:
     """Holds one `core.N3State` and the host-side record of a run (per-frame timings)."""
 
     def __init__(self, cfg: MapConfig | None = None, state: core.N3State | None = None,
-                 timings: list | None = None):
+                 timings: list | None = None, first_scan: tuple | None = None):
+        """first_scan: (points_s [N,3], pose [4,4]) of the frame that will be added first, if known:
+        the frame program is then compiled before the map's buffers are allocated, so the compiler's
+        heap (about a gigabyte on a CPU) and the map are not in memory at the same time."""
         self.cfg = cfg or MapConfig()
         self.static = core.N3Static.from_config(self.cfg)
+        self._bucket, self._headroom = 0, {}
         if state is None:
-            state = core.init_state(self.static, self.cfg, core.capacities_for(self.static, self.cfg))
+            caps = core.capacities_for(self.static, self.cfg)
+            if first_scan is not None:
+                self._precompile(caps, *first_scan)
+            state = core.init_state(self.static, self.cfg, caps)
+            hostmem.trim()  # the initialisation's temporaries
         self.state, self.timings = state, list(timings or [])
         self.frames = int(self.state.frame)
-        self._bucket, self._headroom = 0, {}
         # A host copy of the origin (fixed once the first frame set it): reading the state's every
         # frame would be a second device->host transfer per frame.
         self._origin = core.origin_world(self.static, self.state)
+
+    def _precompile(self, caps: core.Capacities, points_s, pose) -> None:
+        """Compile the first frame's program from the shapes alone (`core.compiled_step` keeps it)."""
+        abstract = jax.eval_shape(lambda: core.init_state(self.static, self.cfg, caps))
+        if self.static.preprocess is not None:
+            pts, pose = scan.check_frame(points_s, pose, 0)
+            self._bucket = scan.bucket_for(len(pts))
+            batch = scan.to_raw(pts, pose, pose[:3, 3], self._bucket)
+            self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
+        else:
+            pts, nrm, pose = scan.preprocess(points_s, pose, self.cfg.preprocess, 0)
+            self._bucket = scan.bucket_for(len(pts))
+            batch = scan.to_batch(pts, nrm, pose, pose[:3, 3], self._bucket)
+        core.compiled_step(self.static, abstract, batch, self._headroom.get("scan_rows", 0))
 
     def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
         """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
         `prepared` = (points, normals, pose) already preprocessed (see `scan.Prefetcher`).
         Returns the frame's timings (s), loss and map/store sizes."""
         t0 = time.perf_counter()
-        pts, nrm, pose = prepared or scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames)
+        device = self.static.preprocess is not None
+        if prepared is not None:
+            pts, nrm, pose = prepared
+        elif device:
+            (pts, pose), nrm = scan.check_frame(points_s, pose, self.frames), None
+        else:
+            pts, nrm, pose = scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames)
         t1 = time.perf_counter()
         if self.frames == 0:
             self.state = core.set_origin(self.static, self.state, pose[:3, 3])
             self._origin = core.origin_world(self.static, self.state)
         self._bucket = scan.bucket_for(len(pts), self._bucket)
-        batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket)
+        if device:
+            batch = scan.to_raw(pts, pose, self._origin, self._bucket)
+            if "scan_rows" not in self._headroom:  # the first frame: size the rows by what it keeps
+                self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
+        else:
+            batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket)
         self.state, fs, ts, passes = core.run_frame(self.static, self.state, batch, self._headroom,
                                                      seed=self.cfg.train.seed, feature_std=self.cfg.grid.feature_std)
         t2 = time.perf_counter()
-        info = {"frame": self.frames, "points": len(pts), "preprocess_s": t1 - t0, "map_s": t2 - t1,
+        info = {"frame": self.frames, "points": int(fs.scan_points), "preprocess_s": t1 - t0, "map_s": t2 - t1,
                 "total_s": t2 - t0, "passes": passes, "loss": float(ts.loss), "bce": float(ts.bce),
                 "eikonal": float(ts.eikonal), "window_voxels": int(fs.window_blocks),
                 "store_pairs": int(fs.store_pairs),

@@ -24,6 +24,7 @@ import numpy as np
 from jaxmap.config import (ConfigError, MapConfig, config_from_args, lattice_problem, load_config, save_config,
                            shipped_config_path, to_dict)
 from jaxmap.errors import CheckpointError, DataError, NoCheckpointError
+from jaxmap.hostmem import peak_rss_mb
 from jaxmap.rundir import claim, interrupt_requests, output_file
 
 log = logging.getLogger("jaxmap")
@@ -75,7 +76,9 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
         mapper = resume_mapper(out_dir, cfg)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
     else:
-        mapper = mapper or N3Mapper(cfg)
+        if mapper is None:
+            first = seq.frame(0) if len(seq) else None
+            mapper = N3Mapper(cfg, first_scan=(first.points, first.pose) if first is not None else None)
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     start = mapper.frames
     bar = None
@@ -161,13 +164,6 @@ def _viewer_hooks(mapper, cfg: MapConfig, view: dict | None):
     return attach_viewer(port=view["port"], mesh_every=view["mesh_every"],
                          snapshot_fn=lambda: copy_arrays((mapper.static, mapper.state)),
                          mesh_fn=lambda s: extract_mesh_of(*s, res, cfg.mesh.min_component_faces))
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process so far (MB), from getrusage."""
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def finish_run(mapper, cfg: MapConfig, out_dir: str, seq, evaluate: bool = True, wall_s: float | None = None,

@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import validate_pose
-from jaxmap.n3.core import ScanBatch
+from jaxmap.n3.core import RawScan, ScanBatch
 from jaxmap.preprocess import preprocess_scan
 
 log = logging.getLogger("jaxmap")
@@ -38,6 +38,24 @@ def preprocess(points_s, pose, cfg_preprocess, frame: int):
     validate_pose(pose, where=f"pose of frame {frame}")
     pts, nrm = preprocess_scan(clean_points(points_s, frame), cfg_preprocess)
     return pts, nrm, pose
+
+
+def check_frame(points_s, pose, frame: int):
+    """(points [N, 3] float32 without NaN/inf rows, pose [4, 4] float64), checked: what a frame needs
+    on the host when the frame program preprocesses it (`preprocess.device`)."""
+    pose = np.asarray(pose, np.float64)
+    validate_pose(pose, where=f"pose of frame {frame}")
+    return clean_points(points_s, frame), pose
+
+
+def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket: int) -> RawScan:
+    """Sensor-frame points [N, 3] -> a RawScan padded to `bucket` rows, with the pose in the map
+    frame (the translation relative to the map origin in float64, rounded once)."""
+    n = len(points_s)
+    out = np.zeros((bucket, 3), np.float32)
+    out[:n] = points_s
+    return RawScan(out, np.arange(bucket) < n, pose[:3, :3].astype(np.float32),
+                   (pose[:3, 3] - origin_w).astype(np.float32))
 
 
 def bucket_for(n: int, current: int = 0) -> int:
@@ -70,7 +88,7 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
 
 class Prefetcher:
     """Iterate `(i, points_s, normals_s, pose)` over frames [start, stop) of a sequence, read and
-    preprocessed ahead by `workers` threads (default: one per two CPU cores, at least one), in
+    preprocessed (with `preprocess.device`, only read and checked: normals_s is None) ahead by `workers` threads (default: one per two CPU cores, at least one), in
     order. On a 2-core laptop one thread overlaps the device's work; on a GPU machine the device
     maps a city frame in ~20 ms, and several frames are preprocessed at once to keep up.
     Errors are re-raised in the consumer."""
@@ -91,6 +109,9 @@ class Prefetcher:
 
     def _load(self, i: int):
         fr = self._seq.frame(i)
+        if self._cfg.device:  # the frame program preprocesses: points cleaned, normals None
+            pts, pose = check_frame(fr.points, fr.pose, i)
+            return i, pts, None, pose
         return (i, *preprocess(fr.points, fr.pose, self._cfg, i))
 
     def _fill(self):
