@@ -155,23 +155,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _limit_malloc_arenas(n: int = 2) -> None:
-    """glibc gives every thread that allocates its own malloc arena (up to 8 per core); XLA's worker
-    threads, the prefetch and checkpoint threads then leave ~600 MB of freed-but-kept memory spread
-    over arenas in a mapping run. Two arenas keep the peak RSS of `jaxmap map` on the city near 1 GB
-    instead of 2.7 GB (same speed). Same as MALLOC_ARENA_MAX=2; a no-op off glibc."""
-    if "MALLOC_ARENA_MAX" in os.environ:
-        return
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").mallopt(-8, n)  # M_ARENA_MAX
-    except (OSError, AttributeError):
-        pass
-
-
 def main(argv: list[str] | None = None) -> int:
-    _limit_malloc_arenas()
+    from jaxmap import hostmem
+
+    hostmem.limit_arenas()
     args = build_parser().parse_args(argv)
     # Our messages at INFO; other libraries' (jax's backend probing, orbax) only from WARNING. Records
     # of the "jaxmap" logger pass its own level and then reach the root handler whatever the root level.

@@ -1,0 +1,126 @@
+"""`jaxmap bench n3 --only memory`: where the bytes are while jaxmap maps the default city.
+
+Maps the first `FRAMES` frames in a fresh process with an empty compile cache (so the compile is in
+the figures, as on a user's first run) and prints, in MB:
+  process     resident memory after the imports, after the map's allocation, while compiling the frame
+              program (the peak), after the compiler's heap is handed back, and at the end
+  state       the device buffers of the map by field (feature table, Adam moments, hash tables, pair store)
+  program     the compiled frame program's arguments, outputs (aliased to the donated arguments) and
+              temporaries (XLA's own figures), and the raw scan it is handed
+  capacities  each table's rows in use against its capacity
+
+`python -m jaxmap.bench.n3_memory DATA FRAMES [--set k=v ...]` is the child; it prints one JSON line.
+"""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+
+
+def _mb(n: float) -> float:
+    return float(n) / 2**20
+
+
+def measure(data: str, frames: int, overrides: list[str]) -> dict:
+    """The child: map `frames` frames of `data` and record where the memory is (MB)."""
+    from jaxmap import hostmem
+
+    hostmem.limit_arenas()  # as `jaxmap map` does
+    out = {"rss_imports": hostmem.rss_mb()}
+    import jax
+
+    from jaxmap.config import load_config
+    from jaxmap.io import open_sequence
+    from jaxmap.n3 import core
+    from jaxmap.n3.mapper import N3Mapper
+    from jaxmap.n3.run import city_config_path
+
+    cfg = load_config(city_config_path(), [f"data.path={data}"] + overrides)
+    m = N3Mapper(cfg)
+    out["rss_state"] = hostmem.rss_mb()
+    state = {}
+    for path, x in jax.tree_util.tree_leaves_with_path(m.state):
+        name = jax.tree_util.keystr(path).lstrip(".").split(".")[0].split("[")[0]
+        state[name] = state.get(name, 0.0) + _mb(x.size * x.dtype.itemsize)
+    out["state"] = state
+    seq = open_sequence(data)
+    peak_frames = 0.0
+    for i in range(min(frames, len(seq))):
+        fr = seq.frame(i)
+        info = m.add_frame(fr.points, fr.pose)
+        if i == 0:
+            out["rss_peak_first_frame"] = hostmem.peak_rss_mb()
+            out["rss_after_first_frame"] = hostmem.rss_mb()
+        peak_frames = max(peak_frames, hostmem.rss_mb())
+    out["rss_frames_max"] = peak_frames
+    out["rss_peak"] = hostmem.peak_rss_mb()
+    key, fn = list(core._EXECUTABLES.items())[-1]
+    ma = fn.memory_analysis()
+    out["program"] = {"arguments": _mb(ma.argument_size_in_bytes), "outputs": _mb(ma.output_size_in_bytes),
+                      "aliased": _mb(ma.alias_size_in_bytes), "temporaries": _mb(ma.temp_size_in_bytes)}
+    out["scan_rows"] = key[2]
+    caps = core.Capacities.of(m.state)
+    st = m.state.store
+    out["capacities"] = {
+        "voxel rows": (info["leaf_voxels"], caps.voxel_rows),
+        "feature rows": (info["feature_rows"], caps.feature_rows),
+        "store blocks": (int(jax.device_get(st.window_n)), caps.store_blocks),
+        "store pairs": (info["store_pairs"], caps.store_blocks * caps.pairs_per_block),
+    }
+    out["frames"] = min(frames, len(seq))
+    out["compiles"] = len(core.COMPILE_SECONDS)
+    return out
+
+
+def run(data: str, frames: int, overrides: list[str]) -> dict:
+    """`measure` in a fresh process with an empty compile cache."""
+    with tempfile.TemporaryDirectory(prefix="jaxmap-memory-") as cache:
+        env = dict(os.environ, JAXMAP_CACHE_DIR=cache)
+        env.pop("JAX_COMPILATION_CACHE_DIR", None)
+        cmd = [sys.executable, "-m", "jaxmap.bench.n3_memory", data, str(frames)] + [
+            a for o in overrides for a in ("--set", o)]
+        res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise SystemExit(f"[bench] {' '.join(cmd)} failed:\n{res.stderr[-3000:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def print_report(name: str, r: dict) -> None:
+    print(f"memory of {name}: {r['frames']} frames, {r['compiles']} compile(s), scan bucket {r['scan_rows']} points")
+    print(f"  process (RSS MB): imports {r['rss_imports']:.0f} | + map allocated {r['rss_state']:.0f} | "
+          f"peak while compiling {r['rss_peak_first_frame']:.0f} | after the first frame {r['rss_after_first_frame']:.0f} | "
+          f"frames max {r['rss_frames_max']:.0f} | process peak {r['rss_peak']:.0f}")
+    st = r["state"]
+    print(f"  state (MB, {sum(st.values()):.0f} in all): " + ", ".join(
+        f"{k} {v:.1f}" for k, v in sorted(st.items(), key=lambda kv: -kv[1]) if v >= 0.05))
+    p = r["program"]
+    print(f"  frame program (MB): arguments {p['arguments']:.0f}, outputs {p['outputs']:.0f} "
+          f"(aliased to the donated state: {p['aliased']:.0f}), temporaries {p['temporaries']:.0f}")
+    print("  capacities (in use / capacity): " + ", ".join(
+        f"{k} {u:,} / {c:,} ({100 * u / max(c, 1):.0f} %)" for k, (u, c) in r["capacities"].items()))
+    compile_mb = r["rss_peak_first_frame"] - r["rss_state"]
+    print(f"  => compiling takes {compile_mb:.0f} MB above the allocated map; the map and the program's "
+          f"buffers {sum(st.values()) + p['temporaries']:.0f} MB; the rest is the runtime and its libraries")
+
+
+def main(args, data: str, base: list[str], variants: dict) -> int:
+    frames = int(os.environ.get("JAXMAP_MEMORY_FRAMES", "30"))
+    rows = {}
+    for name in ("jaxmap", "device"):
+        print(f"[bench] memory: {name}, {frames} frames of {data} (empty compile cache)", flush=True)
+        rows[name] = run(data, frames, base + variants.get(name, []))
+        print_report(name, rows[name])
+        print()
+    os.makedirs(args.out, exist_ok=True)
+    with open(os.path.join(args.out, "memory.json"), "w") as f:
+        json.dump(rows, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    argv = sys.argv[1:]
+    sets = [argv[i + 1] for i, a in enumerate(argv) if a == "--set"]
+    print(json.dumps(measure(argv[0], int(argv[1]), sets)))
