@@ -50,7 +50,8 @@ class PreprocessConfig:
     max_z_m: float = 30.0            # upper height crop in the sensor frame
     vox_down_m: float = 0.05         # voxel downsample before sampling (0 = off)
     normal_knn: int = 20             # neighbours for PCA normals (grid: the fewest points a neighbourhood must hold)
-    normals: str = "knn"             # "knn" (k nearest neighbours, scipy on the host) or "grid" (hashed-grid cubes)
+    normals: str = "knn"             # "knn" (k nearest neighbours, scipy on the host), "cube_knn" (the k nearest
+                                     # among the points of a hashed-grid cube) or "grid" (all of the cube)
     normal_cell_m: float = 0.15      # grid normals: the finest cell; a point's neighbourhood is 2 x 2 x 2 cells
     normal_levels: int = 3           # grid normals: cell sizes normal_cell_m * 2^l, l < this (the finest with >= knn)
     device: bool = False             # preprocess on the device, inside the frame program (needs normals: grid)
@@ -158,7 +159,7 @@ class MapConfig:
     mesh: MeshConfig = field(default_factory=MeshConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: str = "runs/map"         # run directory (`--out` overrides it)
-    checkpoint_every: int = 10       # frames between checkpoints (also written at the end and on Ctrl-C)
+    checkpoint_every: int = 50       # frames between checkpoints (also written at the end and on Ctrl-C or SIGTERM)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -308,16 +309,17 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
             f"{x}max_range_m={p.max_range_m!r} must be greater than {x}min_range_m={p.min_range_m!r}")
     if not p.max_z_m > p.min_z_m:
         yield (f"{x}max_z_m", f"{x}min_z_m"), f"{x}max_z_m={p.max_z_m!r} must be greater than {x}min_z_m={p.min_z_m!r}"
-    if p.device and p.normals != "grid":
+    if p.device and p.normals == "knn":
         yield (f"{x}device", f"{x}normals"), (
-            f"{x}device=true needs {x}normals=grid (k nearest neighbours run on the host only); set one of them")
+            f"{x}device=true needs {x}normals=cube_knn or grid (k nearest neighbours over the whole scan run on "
+            "the host only); set one of them")
     if p.device and p.outlier_mad > 0:
         yield (f"{x}device", f"{x}outlier_mad"), (
             f"{x}device=true cannot remove outliers ({x}outlier_mad={p.outlier_mad!r} runs on the host); "
             f"set {x}device=false or {x}outlier_mad=0")
     from jaxmap.preprocess import check_grid, key_span
 
-    if p.normals == "grid" and not check_grid(p.max_range_m, p.normal_cell_m):
+    if p.normals != "knn" and not check_grid(p.max_range_m, p.normal_cell_m):
         yield (f"{x}normal_cell_m", f"{x}max_range_m"), (
             f"{x}normal_cell_m={p.normal_cell_m!r} is too fine for {x}max_range_m={p.max_range_m!r}: "
             f"{key_span(p.max_range_m, p.normal_cell_m)}^3 cells do not fit 32-bit keys; use a cell of at least "
@@ -328,7 +330,7 @@ RULES: dict[type, dict[str, Rule]] = {
     DataConfig: {"kind": one_of(*DATA_KINDS), "begin_frame": at_least(0), "every_frame": at_least(1),
                  "path": NONEMPTY},
     PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3),
-                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid"),
+                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid", "cube_knn"),
                        "normal_cell_m": above(0.0), "normal_levels": at_least(1)},
     SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
                      "free_label_mode": one_of("projected", "truncation"),

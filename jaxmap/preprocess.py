@@ -12,6 +12,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
+CUBE_KNN_CAP = 16      # cube_knn normals: candidates per cell of the cube (in input order)
 MIN_PLANE_POINTS = 3   # grid normals: neighbourhoods with fewer points face the sensor
 DOWNSAMPLE_TIE = 1e-4   # voxel_downsample: distances to the mean within this many voxels count as equal
 
@@ -118,9 +119,11 @@ def check_grid(max_range: float, cell: float) -> bool:
     return key_span(max_range, cell) ** 3 < 2**31
 
 
-def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int,
+                 knn_cap: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """PCA normals over hashed-grid neighbourhoods, oriented towards the sensor at the origin: the
-    reference (float64) of `jaxmap.preprocess_device.grid_normals`, whose docstring defines them.
+    reference (float64) of `jaxmap.preprocess_device.grid_normals`, whose docstring defines them
+    (knn_cap > 0: the k nearest among the first knn_cap points of each cell of the chosen cube).
 
     points_s: [N,3] float32 sensor frame -> (normals [N,3] float32 unit, neighbours [N] int).
     """
@@ -132,6 +135,7 @@ def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int) -> tupl
     chosen_cov = np.zeros((n, 3, 3))
     done = np.zeros(n, bool)
     offsets = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+    cand = np.full((n, 8 * max(knn_cap, 1)), -1)
     for lv in range(levels):
         c = cell * (1 << lv)
         # Cell coordinates as float32 computes them, so both sides put a point in the same cell.
@@ -144,17 +148,34 @@ def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int) -> tupl
         index = {tuple(cc): i for i, cc in enumerate(cells)}
         base = np.floor(points_s / np.float32(c) - np.float32(0.5)).astype(np.int64)
         tot_n, tot_1, tot_2 = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 9))
-        for o in offsets:
+        members = np.argsort(inverse, kind="stable")              # each cell's points, in input order
+        first = np.searchsorted(inverse[members], np.arange(len(cells)))
+        level_cand = np.full((n, 8, max(knn_cap, 1)), -1)
+        for oi, o in enumerate(offsets):
             j = np.array([index.get(tuple(cc), -1) for cc in base + o])
             hit = j >= 0
             tot_n[hit] += cnt[j[hit]]
             tot_1[hit] += s1[j[hit]]
             tot_2[hit] += s2[j[hit]]
+            for i in range(knn_cap):
+                ok = hit & (i < cnt[np.maximum(j, 0)])
+                level_cand[ok, oi, i] = members[first[j[ok]] + i]
         mean = tot_1 / np.maximum(tot_n, 1)[:, None]
         cov = (tot_2 / np.maximum(tot_n, 1)[:, None]).reshape(n, 3, 3) - mean[:, :, None] * mean[:, None, :]
         take = ~done & ((tot_n >= k) | (lv == levels - 1))
         chosen_n[take], chosen_cov[take] = tot_n[take], cov[take]
+        cand[take] = level_cand[take].reshape(int(take.sum()), cand.shape[1])
         done |= take
+    if knn_cap > 0:
+        # The k nearest of the candidates (the point itself among them), as scipy's kNN would pick them.
+        d2 = np.where(cand >= 0, np.sum((p[np.maximum(cand, 0)] - p[:, None, :]) ** 2, -1), np.inf)
+        nearest = np.argsort(d2, axis=1, kind="stable")[:, :k]
+        use = np.isfinite(np.take_along_axis(d2, nearest, 1))
+        x = p[np.take_along_axis(np.maximum(cand, 0), nearest, 1)] - p[:, None, :]
+        chosen_n = use.sum(1)
+        mean = (x * use[:, :, None]).sum(1) / np.maximum(chosen_n, 1)[:, None]
+        c = (x - mean[:, None, :]) * use[:, :, None]
+        chosen_cov = np.einsum("nki,nkj->nij", c, c) / np.maximum(chosen_n, 1)[:, None, None]
     _, evecs = np.linalg.eigh(chosen_cov)
     normals = evecs[:, :, 0]
     flip = np.einsum("ni,ni->n", normals, -p) < 0
@@ -167,8 +188,9 @@ def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int) -> tupl
 
 def normals_of(points_s: np.ndarray, cfg) -> np.ndarray:
     """Normals [M,3] float32 of sensor-frame points [M,3] by `cfg.normals` (a PreprocessConfig)."""
-    if cfg.normals == "grid":
-        return grid_normals(points_s, cfg.normal_cell_m, cfg.normal_levels, cfg.normal_knn)[0]
+    if cfg.normals in ("grid", "cube_knn"):
+        cap = CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0
+        return grid_normals(points_s, cfg.normal_cell_m, cfg.normal_levels, cfg.normal_knn, cap)[0]
     return estimate_normals(points_s, cfg.normal_knn)[0]
 
 

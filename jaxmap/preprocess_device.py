@@ -22,7 +22,7 @@ import numpy as np
 from jax import lax
 
 from jaxmap.grid.hashing import nonzero_fixed
-from jaxmap.preprocess import DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span
+from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span
 
 INT_MAX = jnp.iinfo(jnp.int32).max
 _OFFSETS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], np.int32)   # [8, 3]
@@ -78,14 +78,17 @@ def _level_moments(points, valid, c: float, span: int):
     per_point = jnp.stack([jnp.ones_like(x), x, y, z, x * x, y * y, z * z, x * y, x * z, y * z], axis=1)
     moments = jax.ops.segment_sum(jnp.where(ok[:, None], per_point, 0.0), seg, num_segments=n)
     ukey = jnp.full((n,), INT_MAX, jnp.int32).at[seg].set(skey)   # sorted: equal keys write equal values
-    return ukey, moments
+    start = jax.ops.segment_min(jnp.arange(n, dtype=jnp.int32), seg, num_segments=n)
+    return ukey, moments, order, start
 
 
 def _cube_moments(points, ukey, moments, c: float, span: int):
-    """Count [N] and covariance [N, 3, 3] of the points in each point's 2 x 2 x 2 cube."""
+    """Count [N] and covariance [N, 3, 3] of the points in each point's 2 x 2 x 2 cube, and the cube's
+    cells: index into the level's cells [8, N] int32, -1 where the cell holds no point."""
     off = span // 2
     base = jnp.floor(points / c - 0.5).astype(jnp.int32)                      # [N, 3] the cube's first cell
     tot = jnp.zeros(points.shape[:1] + (10,), jnp.float32)
+    cells = []
     last = ukey.shape[0] - 1
     for oc in _OFFSETS:
         cell = base + oc
@@ -96,7 +99,9 @@ def _cube_moments(points, ukey, moments, c: float, span: int):
             j = jnp.minimum(jnp.searchsorted(ukey, key), last)
         else:
             j = jnp.minimum(j + (ukey[j] == key - 1), last)
-        mo = jnp.where((ukey[j] == key)[:, None], moments[j], 0.0)
+        hit = ukey[j] == key
+        cells.append(jnp.where(hit, j, -1))
+        mo = jnp.where(hit[:, None], moments[j], 0.0)
         m, a, b = mo[:, 0], mo[:, 1:4], mo[:, 4:]
         # Moments about the cell's corner, moved to the cube's corner (shift t = offset * c).
         t = oc.astype(np.float32) * np.float32(c)
@@ -116,6 +121,35 @@ def _cube_moments(points, ukey, moments, c: float, span: int):
     xz = e[:, 4] - mean[:, 0] * mean[:, 2]
     yz = e[:, 5] - mean[:, 1] * mean[:, 2]
     cov = jnp.stack([xx, xy, xz, xy, yy, yz, xz, yz, zz], axis=1).reshape(-1, 3, 3)
+    return cnt, cov, jnp.stack(cells)
+
+
+def _knn_in_cube(points, valid, k: int, cap: int, level, cells, orders, starts, counts):
+    """Covariance [N, 3, 3] and count [N] of each point's k nearest neighbours (itself included) among
+    the first `cap` points (in input order) of each cell of its cube at its chosen `level` [N]:
+    cells [L, 8, N], orders / starts / counts [L, N] of each level (`_level_moments`)."""
+    n = points.shape[0]
+    rows = jnp.arange(n)
+    cell = cells[level[None, :], jnp.arange(8)[:, None], rows[None, :]]           # [8, N]
+    lv = level[None, :]
+    start = starts[lv, jnp.maximum(cell, 0)]
+    count = jnp.where(cell >= 0, counts[lv, jnp.maximum(cell, 0)], 0)
+    i = jnp.arange(cap)
+    pos = start[:, :, None] + i                                                  # [8, N, cap]
+    ok = i < count[:, :, None]
+    cand = orders[lv[:, :, None], jnp.minimum(pos, n - 1)]                      # point indices
+    cand = jnp.transpose(cand, (1, 0, 2)).reshape(n, 8 * cap)
+    ok = jnp.transpose(ok, (1, 0, 2)).reshape(n, 8 * cap)
+    rel = points[cand] - points[:, None, :]                                      # relative: float32 stays exact
+    d2 = jnp.where(ok, jnp.sum(rel * rel, -1), jnp.inf)
+    neg, nb = lax.top_k(-d2, k)                                                  # [N, k]
+    use = jnp.isfinite(neg) & valid[:, None]
+    x = jnp.take_along_axis(rel, nb[:, :, None], axis=1)                         # [N, k, 3]
+    m = use.astype(jnp.float32)
+    cnt = jnp.sum(m, 1)
+    mean = jnp.sum(x * m[:, :, None], 1) / jnp.maximum(cnt, 1.0)[:, None]
+    c = (x - mean[:, None, :]) * m[:, :, None]
+    cov = jnp.einsum("nki,nkj->nij", c, c, precision=lax.Precision.HIGHEST) / jnp.maximum(cnt, 1.0)[:, None, None]
     return cnt, cov
 
 
@@ -146,22 +180,32 @@ def smallest_eigenvector(cov):
     return jnp.where(n > 1e-30, v / jnp.maximum(n, 1e-30), np.array([0.0, 0.0, 1.0], np.float32))
 
 
-def grid_normals(points, valid, *, cell: float, levels: int, k: int, max_range: float):
+def grid_normals(points, valid, *, cell: float, levels: int, k: int, max_range: float, knn_cap: int = 0):
     """PCA normals over hashed-grid neighbourhoods (module docstring), oriented towards the sensor at
-    the origin. points [N, 3] float32 sensor frame, valid [N] -> (normals [N, 3] unit float32,
+    the origin. knn_cap > 0: over the k nearest neighbours among the first `knn_cap` points of each cell
+    of the chosen cube instead of the whole cube (`preprocess.normals: cube_knn`).
+    points [N, 3] float32 sensor frame, valid [N] -> (normals [N, 3] unit float32,
     neighbours [N] float32: points in the neighbourhood used; 0 for invalid rows)."""
     n = points.shape[0]
     chosen_n = jnp.zeros((n,), jnp.float32)
     chosen_cov = jnp.zeros((n, 3, 3), jnp.float32)
+    level = jnp.zeros((n,), jnp.int32)
     done = ~valid
+    per_level = []
     for lv in range(levels):
         c = cell * (1 << lv)
         span = key_span(max_range, c)
-        cnt, cov = _cube_moments(points, *_level_moments(points, valid, c, span), c, span)
+        ukey, moments, order, start = _level_moments(points, valid, c, span)
+        cnt, cov, cells = _cube_moments(points, ukey, moments, c, span)
+        per_level.append((cells, order, start, moments[:, 0].astype(jnp.int32)))
         take = ~done & ((cnt >= k) | (lv == levels - 1))
         chosen_n = jnp.where(take, cnt, chosen_n)
         chosen_cov = jnp.where(take[:, None, None], cov, chosen_cov)
+        level = jnp.where(take, lv, level)
         done = done | take
+    if knn_cap > 0:
+        cells, orders, starts, counts = (jnp.stack(a) for a in zip(*per_level))
+        chosen_n, chosen_cov = _knn_in_cube(points, valid, k, knn_cap, level, cells, orders, starts, counts)
     normals = smallest_eigenvector(chosen_cov)
     flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
     normals = jnp.where(flip[:, None], -normals, normals)
@@ -187,5 +231,5 @@ def preprocess_scan(points, valid, cfg, rows: int):
     pts = jnp.where(ok[:, None], points[jnp.minimum(idx, n - 1)], 0.0)
     # Normals of the packed rows only: a scan keeps ~3/4 of its points, and this is most of the cost.
     normals, _ = grid_normals(pts, ok, cell=cfg.normal_cell_m, levels=cfg.normal_levels, k=cfg.normal_knn,
-                              max_range=cfg.max_range_m)
+                              max_range=cfg.max_range_m, knn_cap=CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0)
     return pts, normals, ok, jnp.sum(keep, dtype=jnp.int32)

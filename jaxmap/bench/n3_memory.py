@@ -1,9 +1,11 @@
 """`jaxmap bench n3 --only memory`: where the bytes are while jaxmap maps the default city.
 
-Maps the first `FRAMES` frames in a fresh process with an empty compile cache (so the compile is in
-the figures, as on a user's first run) and prints, in MB:
-  process     resident memory after the imports, after the map's allocation, while compiling the frame
-              program (the peak), after the compiler's heap is handed back, and at the end
+Maps the first `FRAMES` frames (`JAXMAP_MEMORY_FRAMES`, default 30) in a fresh process with an empty
+compile cache (so the compile is in the figures, as on a user's first run), then again with the cache
+filled (warm), and prints, in MB:
+  process     resident memory after the imports, while compiling the frame program (before the map is
+              allocated, as `jaxmap map` does), after the allocation, after the first frame, the most between frames, and the peak before and after
+              one checkpoint save (what `jaxmap map` writes every `checkpoint_every` frames)
   state       the device buffers of the map by field (feature table, Adam moments, hash tables, pair store)
   program     the compiled frame program's arguments, outputs (aliased to the donated arguments) and
               temporaries (XLA's own figures), and the raw scan it is handed
@@ -29,7 +31,6 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     from jaxmap import hostmem
 
     hostmem.limit_arenas()  # as `jaxmap map` does
-    out = {"rss_imports": hostmem.rss_mb()}
     import jax
 
     from jaxmap.config import load_config
@@ -38,24 +39,33 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     from jaxmap.n3.mapper import N3Mapper
     from jaxmap.n3.run import city_config_path
 
+    jax.devices()  # the runtime up, as before the first frame
+    out = {"rss_imports": hostmem.rss_mb()}
+
     cfg = load_config(city_config_path(), [f"data.path={data}"] + overrides)
-    m = N3Mapper(cfg)
+    seq = open_sequence(data)
+    first = seq.frame(0)
+    m = N3Mapper(cfg, first_scan=(first.points, first.pose))   # as `jaxmap map`: compile, then allocate
+    out["rss_peak_compile"] = hostmem.peak_rss_mb()
     out["rss_state"] = hostmem.rss_mb()
     state = {}
     for path, x in jax.tree_util.tree_leaves_with_path(m.state):
         name = jax.tree_util.keystr(path).lstrip(".").split(".")[0].split("[")[0]
         state[name] = state.get(name, 0.0) + _mb(x.size * x.dtype.itemsize)
     out["state"] = state
-    seq = open_sequence(data)
     peak_frames = 0.0
     for i in range(min(frames, len(seq))):
         fr = seq.frame(i)
         info = m.add_frame(fr.points, fr.pose)
         if i == 0:
-            out["rss_peak_first_frame"] = hostmem.peak_rss_mb()
             out["rss_after_first_frame"] = hostmem.rss_mb()
         peak_frames = max(peak_frames, hostmem.rss_mb())
     out["rss_frames_max"] = peak_frames
+    out["rss_peak_frames"] = hostmem.peak_rss_mb()
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="jaxmap-memory-ckpt-") as d:
+        m.save(d)                          # what `jaxmap map` does every checkpoint_every frames
     out["rss_peak"] = hostmem.peak_rss_mb()
     key, fn = list(core._EXECUTABLES.items())[-1]
     ma = fn.memory_analysis()
@@ -75,24 +85,29 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     return out
 
 
-def run(data: str, frames: int, overrides: list[str]) -> dict:
-    """`measure` in a fresh process with an empty compile cache."""
+def run(data: str, frames: int, overrides: list[str]) -> tuple[dict, dict]:
+    """`measure` in a fresh process with an empty compile cache (cold), then again with the cache it
+    filled (warm: no compile)."""
+    out = []
     with tempfile.TemporaryDirectory(prefix="jaxmap-memory-") as cache:
         env = dict(os.environ, JAXMAP_CACHE_DIR=cache)
         env.pop("JAX_COMPILATION_CACHE_DIR", None)
         cmd = [sys.executable, "-m", "jaxmap.bench.n3_memory", data, str(frames)] + [
             a for o in overrides for a in ("--set", o)]
-        res = subprocess.run(cmd, env=env, capture_output=True, text=True)
-    if res.returncode != 0:
-        raise SystemExit(f"[bench] {' '.join(cmd)} failed:\n{res.stderr[-3000:]}")
-    return json.loads(res.stdout.strip().splitlines()[-1])
+        for _ in ("cold", "warm"):
+            res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            if res.returncode != 0:
+                raise SystemExit(f"[bench] {' '.join(cmd)} failed:\n{res.stderr[-3000:]}")
+            out.append(json.loads(res.stdout.strip().splitlines()[-1]))
+    return out[0], out[1]
 
 
 def print_report(name: str, r: dict) -> None:
     print(f"memory of {name}: {r['frames']} frames, {r['compiles']} compile(s), scan bucket {r['scan_rows']} points")
-    print(f"  process (RSS MB): imports {r['rss_imports']:.0f} | + map allocated {r['rss_state']:.0f} | "
-          f"peak while compiling {r['rss_peak_first_frame']:.0f} | after the first frame {r['rss_after_first_frame']:.0f} | "
-          f"frames max {r['rss_frames_max']:.0f} | process peak {r['rss_peak']:.0f}")
+    print(f"  process (RSS MB): imports {r['rss_imports']:.0f} | peak while compiling {r['rss_peak_compile']:.0f} | "
+          f"map allocated {r['rss_state']:.0f} | after the first frame {r['rss_after_first_frame']:.0f} | "
+          f"frames max {r['rss_frames_max']:.0f} | peak while mapping {r['rss_peak_frames']:.0f} | "
+          f"peak with a checkpoint save {r['rss_peak']:.0f}")
     st = r["state"]
     print(f"  state (MB, {sum(st.values()):.0f} in all): " + ", ".join(
         f"{k} {v:.1f}" for k, v in sorted(st.items(), key=lambda kv: -kv[1]) if v >= 0.05))
@@ -101,18 +116,20 @@ def print_report(name: str, r: dict) -> None:
           f"(aliased to the donated state: {p['aliased']:.0f}), temporaries {p['temporaries']:.0f}")
     print("  capacities (in use / capacity): " + ", ".join(
         f"{k} {u:,} / {c:,} ({100 * u / max(c, 1):.0f} %)" for k, (u, c) in r["capacities"].items()))
-    compile_mb = r["rss_peak_first_frame"] - r["rss_state"]
-    print(f"  => compiling takes {compile_mb:.0f} MB above the allocated map; the map and the program's "
-          f"buffers {sum(st.values()) + p['temporaries']:.0f} MB; the rest is the runtime and its libraries")
+    print(f"  => compiling takes {r['rss_peak_compile'] - r['rss_imports']:.0f} MB above the imports (before the map "
+          f"is allocated); the map and the program's buffers {sum(st.values()) + p['temporaries']:.0f} MB; a "
+          f"checkpoint save {r['rss_peak'] - r['rss_peak_frames']:+.0f} MB on the peak")
 
 
 def main(args, data: str, base: list[str], variants: dict) -> int:
     frames = int(os.environ.get("JAXMAP_MEMORY_FRAMES", "30"))
     rows = {}
     for name in ("jaxmap", "device"):
-        print(f"[bench] memory: {name}, {frames} frames of {data} (empty compile cache)", flush=True)
-        rows[name] = run(data, frames, base + variants.get(name, []))
-        print_report(name, rows[name])
+        print(f"[bench] memory: {name}, {frames} frames of {data}, cold (empty compile cache) and warm", flush=True)
+        cold, warm = run(data, frames, base + variants.get(name, []))
+        rows[name] = {"cold": cold, "warm": warm}
+        print_report(f"{name}, cold", cold)
+        print_report(f"{name}, warm", warm)
         print()
     os.makedirs(args.out, exist_ok=True)
     with open(os.path.join(args.out, "memory.json"), "w") as f:
