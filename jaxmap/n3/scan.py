@@ -32,20 +32,19 @@ def clean_points(points_s, frame: int) -> np.ndarray:
     return points_s
 
 
-def preprocess(points_s, pose, cfg_preprocess, frame: int):
-    """(points [M, 3], normals [M, 3]) sensor frame, and the pose [4, 4] float64, checked."""
-    pose = np.asarray(pose, np.float64)
-    validate_pose(pose, where=f"pose of frame {frame}")
-    pts, nrm = preprocess_scan(clean_points(points_s, frame), cfg_preprocess)
-    return pts, nrm, pose
-
-
 def check_frame(points_s, pose, frame: int):
-    """(points [N, 3] float32 without NaN/inf rows, pose [4, 4] float64), checked: what a frame needs
+    """(points [N, 3] float32 without NaN/inf rows, pose [4, 4] float64), checked: all a frame needs
     on the host when the frame program preprocesses it (`preprocess.device`)."""
     pose = np.asarray(pose, np.float64)
     validate_pose(pose, where=f"pose of frame {frame}")
     return clean_points(points_s, frame), pose
+
+
+def preprocess(points_s, pose, cfg_preprocess, frame: int):
+    """(points [M, 3], normals [M, 3]) sensor frame, and the pose [4, 4] float64, checked."""
+    points_s, pose = check_frame(points_s, pose, frame)
+    pts, nrm = preprocess_scan(points_s, cfg_preprocess)
+    return pts, nrm, pose
 
 
 def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket: int) -> RawScan:
