@@ -4,6 +4,7 @@
     state = init_state(static, cfg, capacities_for(static, cfg))
     state = set_origin(static, state, sensor_xyz_world) # once, before the first frame
     state, frame_stats, train_stats = step(static, state, scan)   # integrate + train, one jit
+    ... = step_raw(static, state, raw_scan, rows)      # the same from a raw scan (preprocess.device)
     sdf, valid = query(static, state, points_m)
 
 `integrate(static, state, scan, key)` samples the frame's training pairs, allocates leaf voxels and
@@ -673,7 +674,7 @@ def store_bytes(store) -> int:
 # one frame on the host: compile once per shape, retry passes, plan growth
 # ---------------------------------------------------------------------------------------------
 
-_EXECUTABLES: dict = {}  # (static, capacities, scan bucket) -> compiled `step`
+_EXECUTABLES: dict = {}  # (static, capacities, scan bucket, preprocessed rows) -> compiled `step` / `step_raw`
 COMPILE_SECONDS: list = []  # seconds of every compile of `step` in this process (benchmarks read it)
 
 
