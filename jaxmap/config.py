@@ -54,7 +54,7 @@ class PreprocessConfig:
                                      # among the points of a hashed-grid cube) or "grid" (all of the cube)
     normal_cell_m: float = 0.15      # grid normals: the finest cell; a point's neighbourhood is 2 x 2 x 2 cells
     normal_levels: int = 3           # grid normals: cell sizes normal_cell_m * 2^l, l < this (the finest with >= knn)
-    device: bool = False             # preprocess on the device, inside the frame program (needs normals: grid)
+    device: bool = False             # preprocess on the device, inside the frame program (needs normals: cube_knn or grid)
     outlier_mad: float = 0.0         # > 0: drop points whose range-scaled mean neighbour distance is this many
                                      # robust std above the scan's median (mixed pixels, stray returns); 0 = off
 
@@ -317,9 +317,14 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
         yield (f"{x}device", f"{x}outlier_mad"), (
             f"{x}device=true cannot remove outliers ({x}outlier_mad={p.outlier_mad!r} runs on the host); "
             f"set {x}device=false or {x}outlier_mad=0")
-    from jaxmap.preprocess import check_grid, key_span
+    if p.normals != "knn":
+        yield from _grid_checks(p, x)
 
-    if p.normals != "knn" and not check_grid(p.max_range_m, p.normal_cell_m):
+
+def _grid_checks(p: PreprocessConfig, x: str):
+    from jaxmap.preprocess import check_grid, key_span  # numpy and scipy: only for the grid modes
+
+    if not check_grid(p.max_range_m, p.normal_cell_m):
         yield (f"{x}normal_cell_m", f"{x}max_range_m"), (
             f"{x}normal_cell_m={p.normal_cell_m!r} is too fine for {x}max_range_m={p.max_range_m!r}: "
             f"{key_span(p.max_range_m, p.normal_cell_m)}^3 cells do not fit 32-bit keys; use a cell of at least "

@@ -60,15 +60,20 @@ def voxel_keep(points, valid, voxel: float):
     return jnp.zeros((n,), bool).at[order].set(chosen)
 
 
+def _cell_key(cell, span: int):
+    """One int32 per cell [N, 3] int32, cells centred on the sensor (`key_span` cells per axis); the
+    key of cell z + 1 is the key of cell z plus one."""
+    off = span // 2
+    return ((cell[:, 0] + off) * span + (cell[:, 1] + off)) * span + (cell[:, 2] + off)
+
+
 def _level_moments(points, valid, c: float, span: int):
     """Per-cell moments of one level: (sorted unique cell keys [N] int32, INT_MAX after the last;
     moments [N, 10]: count, first moments (3), second moments xx yy zz xy xz yz), each point relative
     to its cell's corner."""
     n = points.shape[0]
-    off = span // 2
     q = jnp.floor(points / c).astype(jnp.int32)
-    key = ((q[:, 0] + off) * span + (q[:, 1] + off)) * span + (q[:, 2] + off)
-    key = jnp.where(valid, key, INT_MAX)
+    key = jnp.where(valid, _cell_key(q, span), INT_MAX)
     skey, order = lax.sort_key_val(key, jnp.arange(n, dtype=jnp.int32))
     new = jnp.concatenate([jnp.ones((1,), bool), skey[1:] != skey[:-1]])
     seg = jnp.cumsum(new.astype(jnp.int32)) - 1
@@ -85,14 +90,12 @@ def _level_moments(points, valid, c: float, span: int):
 def _cube_moments(points, ukey, moments, c: float, span: int):
     """Count [N] and covariance [N, 3, 3] of the points in each point's 2 x 2 x 2 cube, and the cube's
     cells: index into the level's cells [8, N] int32, -1 where the cell holds no point."""
-    off = span // 2
     base = jnp.floor(points / c - 0.5).astype(jnp.int32)                      # [N, 3] the cube's first cell
     tot = jnp.zeros(points.shape[:1] + (10,), jnp.float32)
     cells = []
     last = ukey.shape[0] - 1
     for oc in _OFFSETS:
-        cell = base + oc
-        key = ((cell[:, 0] + off) * span + (cell[:, 1] + off)) * span + (cell[:, 2] + off)
+        key = _cell_key(base + oc, span)
         if oc[2] == 0:
             # One binary search per column of the cube: cell z + 1 has key + 1, so it is the next
             # entry of the sorted keys when cell z is there and the same entry when it is not.

@@ -38,11 +38,9 @@ VARIANTS = {
     "ray_only": ["sampling.free_sample_n=0"],           # the paper's rule: every free sample on the whole ray
     "sigma_0.1": ["sampling.sigma_m=0.1"],              # the paper's tr / 3
     "outliers": ["preprocess.outlier_mad=6"],           # range-scaled statistical outlier removal
-    # the scan preprocessed inside the frame program (k nearest in the grid's cubes; whole-cube PCA),
-    # and the host path with scipy's k nearest neighbours
+    # the scan preprocessed inside the frame program (k nearest in the grid's cubes; whole-cube PCA)
     "device": ["preprocess.device=true", "preprocess.normals=cube_knn"],
     "device_grid": ["preprocess.device=true", "preprocess.normals=grid"],
-    "host_knn": ["preprocess.device=false", "preprocess.normals=knn"],
     "projective": ["sampling.label_mode=projective"],
     "corrected": ["sampling.label_mode=corrected"],
     "replay": ["window.mode=replay"],
