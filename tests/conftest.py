@@ -1,9 +1,19 @@
 """Session-wide fixtures: the --small synthetic scenes, generated once per test session (per xdist
 worker). Treat the returned directories as read-only; copy them before modifying anything.
 
-The suite compiles into the user's per-CPU XLA cache (`jaxmap.compile_cache`), as `jaxmap` does:
-warm, it saves half the suite's time; per CPU, it never loads an executable compiled elsewhere."""
+Each xdist worker compiles into its own folder of the user's per-CPU XLA cache (`jaxmap.compile_cache`):
+warm, the cache saves half the suite's time, but two processes that write and read one entry at the
+same time can abort the reader inside XLA (seen in CI: `Fatal Python error: Aborted` in
+`compilation_cache.get_executable_and_time`), and JAX's cache does not lock unless it evicts."""
+import os
+
 import pytest
+
+from jaxmap import compile_cache  # noqa: E402  (jax itself is not imported yet: the environment still decides)
+
+_WORKER_CACHE = os.path.join(compile_cache.DEFAULT_DIR, "tests-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
+os.environ["JAXMAP_CACHE_DIR"] = _WORKER_CACHE        # for the CLI subprocesses the tests start
+os.environ["JAX_COMPILATION_CACHE_DIR"] = _WORKER_CACHE  # for this process
 
 
 @pytest.fixture(scope="session")
