@@ -1,10 +1,12 @@
 """Session-wide fixtures: the --small synthetic scenes, generated once per test session (per xdist
-worker). Treat the returned directories as read-only; copy them before modifying anything.
+worker), and the compiled programs dropped after each test module.
 
-Each xdist worker compiles into its own folder of the user's per-CPU XLA cache (`jaxmap.compile_cache`):
-warm, the cache saves half the suite's time, but two processes that write and read one entry at the
-same time can abort the reader inside XLA (seen in CI: `Fatal Python error: Aborted` in
-`compilation_cache.get_executable_and_time`), and JAX's cache does not lock unless it evicts."""
+An xdist worker runs half the suite in one process, and every XLA:CPU executable keeps its machine
+code in memory maps (a frame program about 2,000): kept for the whole session they reached 64,400 of
+the 65,530 maps Linux allows a process (vm.max_map_count), and past it XLA aborts the worker inside a
+compile or a cache load (`Fatal Python error: Aborted`, seen in CI). Each worker compiles into its own
+folder of the user's per-CPU XLA cache (`jaxmap.compile_cache`): warm, the cache saves half the
+suite's time, and no two processes write one entry."""
 import os
 
 import pytest
@@ -14,6 +16,28 @@ from jaxmap import compile_cache  # noqa: E402  (jax itself is not imported yet:
 _WORKER_CACHE = os.path.join(compile_cache.DEFAULT_DIR, "tests-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
 os.environ["JAXMAP_CACHE_DIR"] = _WORKER_CACHE        # for the CLI subprocesses the tests start
 os.environ["JAX_COMPILATION_CACHE_DIR"] = _WORKER_CACHE  # for this process
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _drop_compiled_programs():
+    """After each module: drop JAX's compiled programs and the mapper's, so their memory maps go."""
+    yield
+    import gc
+
+    import jax
+
+    from jaxmap.n3 import core
+
+    jax.clear_caches()
+    core.forget_compiled()
+    gc.collect()
+    try:
+        with open("/proc/self/maps") as f:
+            maps = sum(1 for _ in f)
+    except OSError:  # not Linux
+        return
+    # Held after the cleanup, maps would pile up module by module until XLA aborts: fail here instead.
+    assert maps < 20_000, f"{maps} memory maps held after the module's programs were dropped (limit 65,530)"
 
 
 @pytest.fixture(scope="session")

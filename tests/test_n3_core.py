@@ -209,6 +209,35 @@ def test_growth_from_tiny_capacities_loses_nothing():
     assert pairs(a) == pairs(b)
 
 
+def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
+    """The frame programs are kept least recently used first and at most EXECUTABLES_KEPT of them
+    (each holds ~2,000 memory maps; a process may hold 65,530): a hit is not compiled again and
+    becomes the newest, the oldest is dropped."""
+    import collections
+    import types
+
+    compiled = []
+
+    class Step:
+        def lower(self, static, state, batch):
+            return types.SimpleNamespace(compile=lambda: compiled.append(state) or (lambda *a: state))
+
+    monkeypatch.setattr(core, "step", Step())
+    monkeypatch.setattr(core.Capacities, "of", staticmethod(lambda state: state))
+    monkeypatch.setattr(core, "_EXECUTABLES", collections.OrderedDict())
+    monkeypatch.setattr(core, "COMPILE_SECONDS", [])
+    batch = types.SimpleNamespace(points=np.zeros((8, 3)))
+    n = core.EXECUTABLES_KEPT
+    assert 2 <= n <= 8  # a few programs for a process that maps again, not hundreds of thousands of maps
+    for caps in range(n):
+        assert core.compiled_step("static", caps, batch)() == caps
+    assert core.compiled_step("static", 0, batch)() == 0 and compiled == list(range(n))  # a hit
+    core.compiled_step("static", n, batch)  # one more: the least recently used (1, not 0) goes
+    assert list(core._EXECUTABLES) == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
+    core.compiled_step("static", 1, batch)
+    assert compiled == [*range(n + 1), 1]
+
+
 def test_thirty_frames_compile_nothing_after_the_warm_up():
     """Fixed shapes: once the first frame has compiled the frame program, 29 more frames (the
     window sliding along a corridor, maps growing) compile nothing."""

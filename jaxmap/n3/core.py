@@ -26,6 +26,7 @@ integer voxel index, snapped to the coarsest level), so float32 stays precise on
 """
 from __future__ import annotations
 
+import collections
 import dataclasses
 import functools
 import logging
@@ -674,7 +675,13 @@ def store_bytes(store) -> int:
 # one frame on the host: compile once per shape, retry passes, plan growth
 # ---------------------------------------------------------------------------------------------
 
-_EXECUTABLES: dict = {}  # (static, capacities, scan bucket, preprocessed rows) -> compiled `step` / `step_raw`
+# (static, capacities, scan bucket, preprocessed rows) -> compiled `step` / `step_raw`, least recently
+# used first. Bounded: an XLA:CPU executable keeps its machine code in hundreds of memory maps, a Linux
+# process may hold 65,530 (vm.max_map_count), and a process that maps many times (a notebook, the test
+# suite) aborted inside XLA once an unbounded cache had kept every program it ever compiled. Capacities
+# only grow during a drive, so a drive never returns to an evicted key.
+_EXECUTABLES: collections.OrderedDict = collections.OrderedDict()
+EXECUTABLES_KEPT = 4
 COMPILE_SECONDS: list = []  # seconds of every compile of `step` in this process (benchmarks read it)
 
 
@@ -685,7 +692,9 @@ def compiled_step(static: N3Static, state: N3State, batch, rows: int = 0):
     raw = isinstance(batch, RawScan)
     key = (static, Capacities.of(state), batch.points.shape[0], rows if raw else 0)
     fn = _EXECUTABLES.get(key)
-    if fn is None:
+    if fn is not None:
+        _EXECUTABLES.move_to_end(key)
+    else:
         from jaxmap import compile_cache
 
         est = compile_cache.estimate("n3_step")
@@ -699,7 +708,14 @@ def compiled_step(static: N3Static, state: N3State, batch, rows: int = 0):
         COMPILE_SECONDS.append(secs)
         log.info("compiled in %.1f s", secs)
         _EXECUTABLES[key] = fn
+        while len(_EXECUTABLES) > EXECUTABLES_KEPT:
+            _EXECUTABLES.popitem(last=False)
     return fn
+
+
+def forget_compiled() -> None:
+    """Drop the compiled frame programs this process keeps (their memory maps go with them)."""
+    _EXECUTABLES.clear()
 
 
 def run_frame(static: N3Static, state: N3State, batch: ScanBatch, headroom: dict, *, seed: int,
