@@ -275,10 +275,13 @@ def main_long(args) -> int:
           f"{s.get('compile_s', float('nan')):.1f} s in {s.get('compiles', -1)} compiles), peak RSS "
           f"{s.get('peak_rss_mapping_mb', float('nan')):.0f} MB")
     print(f"median s/frame, frames 100-200: {ma:.3f}; frames 900-1000: {mb:.3f}; ratio {mb / ma:.3f}")
-    print(f"\n{'frame':>6}{'store pairs':>13}{'store MB':>10}{'window vox':>11}{'leaf voxels':>12}{'feature rows':>13}")
-    for r in frames[::100] + [frames[-1]]:
-        print(f"{r['frame']:>6d}{r['store_pairs']:>13d}{r['store_bytes'] / 2**20:>10.1f}{r['window_voxels']:>11d}"
-              f"{r['leaf_voxels']:>12d}{r['feature_rows']:>13d}")
+    print(f"\n{'frames':>10}{'median s':>9}{'store pairs':>12}{'store MB':>9}{'window vox':>11}{'leaf voxels':>12}"
+          f"{'feature rows':>13}{'capacity':>9}{'RSS MB':>8}{'peak MB':>8}")
+    for a in range(0, n, 100):
+        r, b = frames[min(a + 99, n - 1)], min(a + 100, n)  # the block's last frame; RSS: the block's largest
+        print(f"{a:>4d}-{b - 1:<5d}{float(np.median(tot[a:b])):>9.3f}{r['store_pairs']:>12d}{r['store_bytes'] / 2**20:>9.1f}"
+              f"{r['window_voxels']:>11d}{r['leaf_voxels']:>12d}{r['feature_rows']:>13d}{r['feature_capacity']:>9d}"
+              f"{max(f['rss_mb'] for f in frames[a:b]):>8.0f}{r['peak_rss_mb']:>8.0f}")
     pairs = [r["store_pairs"] for r in frames]
     flat, ratio = store_flat_after_full(pairs)
     print(f"store flat once the window is full: {flat} (last half / first half max = {ratio:.2f})")
@@ -286,6 +289,7 @@ def main_long(args) -> int:
         json.dump({"median_100_200": ma, "median_900_1000": mb, "ratio": mb / ma, "wall_s": s["wall_s"],
                    "s_per_frame": s["wall_s_per_frame"], "compile_s": s.get("compile_s"),
                    "peak_rss_mapping_mb": s.get("peak_rss_mapping_mb"), "store_flat": flat,
-                   "frames": [{k: r[k] for k in ("frame", "total_s", "store_pairs", "leaf_voxels", "feature_rows")}
+                   "frames": [{k: r[k] for k in ("frame", "total_s", "store_pairs", "leaf_voxels", "feature_rows",
+                                                 "feature_capacity", "rss_mb", "peak_rss_mb")}
                               for r in frames]}, f, indent=1)
     return 0

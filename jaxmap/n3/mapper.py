@@ -90,7 +90,9 @@ class N3Mapper:
                 "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
                 "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
                 "free_dropped": int(fs.free_dropped), "carved": int(fs.carved),
-                "points_filtered": int(fs.points_filtered)}
+                "points_filtered": int(fs.points_filtered),
+                "feature_capacity": int(self.state.feature_table.shape[0]),
+                "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
         self.frames += 1
         self.timings.append(info)
         return info
