@@ -3,7 +3,10 @@
 Layout of a checkpoint directory (`RUN/checkpoint`), one subdirectory per save, named by its step (the
 frames mapped, for N3), as orbax's CheckpointManager names them:
 
-  <step>/state/          orbax PyTree checkpoint of the state (N3: `jaxmap.n3.core.N3State`; IMT: the latent map)
+  <step>/state/          orbax PyTree checkpoint of the state (IMT: the latent map; N3 maps before 0.3), or
+  <step>/arrays/         the state as one `.npy` file per leaf, `arrays/<key>/<key>.npy` (N3: the compact
+                         `jaxmap.n3.core.N3State`; `save_arrays`): written one leaf at a time, so a save
+                         needs no second copy of the map in memory, where orbax holds ~1.4 copies more
   <step>/meta.json       what is needed to rebuild it: the config, capacities, per-frame timings so far
   <step>/manifest.json   the step and the size and SHA-256 of every other file of `<step>/`, written last
 
@@ -25,9 +28,10 @@ import json
 import logging
 import os
 import shutil
-from typing import Callable, TypeVar
+from typing import Callable, Iterable, TypeVar
 
 import jax
+import numpy as np
 
 from jaxmap.errors import CheckpointError, NoCheckpointError
 
@@ -35,6 +39,7 @@ log = logging.getLogger("jaxmap")
 
 KEEP = 2
 MANIFEST = "manifest.json"
+ARRAYS = "arrays"
 T = TypeVar("T")
 
 
@@ -83,6 +88,28 @@ def save_tree(path: str, tree, meta: dict, step: int | None = None, keep: int = 
     """Write `tree` (an orbax PyTree, under `state/`) and `meta` (`meta.json`) as checkpoint `step` of
     directory `path` (default: one past the newest there), with its manifest; keep the newest `keep`.
     Returns the checkpoint's directory `path/<step>`."""
+    return _save(path, meta, step, keep,
+                 lambda tmp: _checkpointer().save(os.path.join(tmp, "state"), jax.device_get(tree)))
+
+
+def save_arrays(path: str, leaves: Iterable[tuple[str, Callable[[], np.ndarray]]], meta: dict,
+                step: int | None = None, keep: int = KEEP) -> str:
+    """Like `save_tree`, but the state is `leaves`: (name, fn) pairs, `fn()` giving the leaf as a host
+    array. Each leaf is fetched and written (`arrays/<name>.npy`, "/" in a name makes folders) before
+    the next is fetched, so the save holds one leaf at a time. Names are of nested dict keys, as
+    `read_tree` gives them back."""
+    def write(tmp):
+        for name, fn in leaves:
+            f = os.path.join(tmp, ARRAYS, name + ".npy")
+            os.makedirs(os.path.dirname(f), exist_ok=True)
+            np.save(f, fn(), allow_pickle=False)
+
+    return _save(path, meta, step, keep, write)
+
+
+def _save(path: str, meta: dict, step: int | None, keep: int, write: Callable[[str], None]) -> str:
+    """The atomic part of a save: `write(tmp)` fills `path/<step>.tmp`, then meta.json and the manifest
+    are written and the folder renamed to `path/<step>`; the newest `keep` are kept."""
     path = os.path.abspath(path)  # orbax only takes absolute paths
     if step is None:
         have = steps(path)
@@ -92,7 +119,7 @@ def save_tree(path: str, tree, meta: dict, step: int | None = None, keep: int = 
     if os.path.exists(tmp):
         shutil.rmtree(tmp)
     os.makedirs(tmp)
-    _checkpointer().save(os.path.join(tmp, "state"), jax.device_get(tree))
+    write(tmp)
     with open(os.path.join(tmp, "meta.json"), "w") as f:
         json.dump({**meta, "step": int(step)}, f)
     with open(os.path.join(tmp, MANIFEST), "w") as f:
@@ -196,8 +223,12 @@ def read_meta(path: str, what: str = "jaxmap") -> tuple[str, dict]:
 
 
 def read_tree(ckpt: str):
-    """The `state/` tree of checkpoint directory `ckpt` (from `read_meta` / `load`) as numpy arrays, in
-    the nested dicts orbax stores; the caller rebuilds its own types. CheckpointError if orbax cannot."""
+    """The state of checkpoint directory `ckpt` (from `read_meta` / `load`) as numpy arrays in nested
+    dicts: an `arrays/` save (memory-mapped, read-only: copy what you keep) or orbax's `state/`. The
+    caller rebuilds its own types. CheckpointError if it cannot be read."""
+    arrays = os.path.join(os.path.abspath(ckpt), ARRAYS)
+    if os.path.isdir(arrays):
+        return _read_arrays(arrays)
     state = os.path.join(os.path.abspath(ckpt), "state")
     if not os.path.isdir(state):
         raise CheckpointError(f"{state}: missing")
@@ -206,3 +237,19 @@ def read_tree(ckpt: str):
     except Exception as e:  # orbax/tensorstore raise many types for damaged files
         first = str(e).strip().splitlines()[0][:200] if str(e).strip() else ""
         raise CheckpointError(f"{state}: unreadable ({type(e).__name__}: {first})") from None
+
+
+def _read_arrays(root: str) -> dict:
+    tree: dict = {}
+    for rel in _files(root):
+        if not rel.endswith(".npy"):
+            continue
+        *keys, leaf = rel[:-len(".npy")].split(os.sep)
+        node = tree
+        for k in keys:
+            node = node.setdefault(k, {})
+        try:
+            node[leaf] = np.load(os.path.join(root, rel), mmap_mode="r", allow_pickle=False)
+        except (OSError, ValueError) as e:
+            raise CheckpointError(f"{os.path.join(root, rel)}: unreadable ({e})") from None
+    return tree

@@ -395,6 +395,30 @@ def test_window_cube_test_is_exact_on_this_backend():
     np.testing.assert_array_equal(np.asarray(got), np.all(np.abs(coord - c) <= 100, axis=1))
 
 
+def test_a_save_on_the_cpu_holds_no_copy_of_the_map(tmp_path):
+    """`save_state` writes each table from the state's own buffers, one at a time: the host memory it
+    allocates at its peak (numpy's allocations, traced) is about its largest array (the store's
+    blocks in use, gathered), where building the compact tree first (and orbax) held the whole map
+    once or more."""
+    import tracemalloc
+
+    from jaxmap.n3.checkpoint import compact, save_state
+
+    m = N3Mapper(_cfg())
+    for pts, pose in _frames(3):
+        m.add_frame(pts, pose)
+    sizes = [x.nbytes for x in jax.tree_util.tree_leaves(compact(m.state))]
+    size, largest = sum(sizes), max(sizes)
+    assert size > 2**20 and largest < 0.6 * size  # MBs, in several arrays: the bound below separates
+    tracemalloc.start()
+    try:
+        save_state(str(tmp_path / "a"), m.cfg, m.state, m.timings)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1.25 * largest, (peak, largest, size)
+
+
 def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
     """Saved compactly (keys in row order, used rows and blocks only) and rebuilt, the state equals
     the original in every leaf except the hash tables' slot layout, where the same keys map to the
@@ -422,6 +446,14 @@ def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
         cfg, state, timings = load_state(str(tmp_path / name))
         assert cfg == m.cfg and len(timings) == 3
         same(state, m.state)
+    # a checkpoint of earlier versions (an orbax tree under state/) is still read, to the same state
+    from jaxmap.checkpoint import save_tree
+    from jaxmap.n3.checkpoint import _meta, compact
+
+    assert (tmp_path / "a" / "3" / "arrays").is_dir() and not (tmp_path / "a" / "3" / "state").exists()
+    save_tree(str(tmp_path / "o"), compact(m.state), _meta(m.cfg, m.state, m.timings), step=3)
+    _, state, _ = load_state(str(tmp_path / "o"))
+    same(state, m.state)
     # an empty map round-trips too
     e = N3Mapper(_cfg())
     save_state(str(tmp_path / "e"), e.cfg, e.state, [])

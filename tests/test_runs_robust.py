@@ -103,7 +103,7 @@ def test_a_finished_run_keeps_two_checksummed_checkpoints_and_counts_empty_scans
     assert len(steps) == 2 and steps[0] == 6, steps
     for s in steps:
         m = json.loads((ref / "checkpoint" / str(s) / "manifest.json").read_text())
-        assert m["step"] == s and "meta.json" in m["files"] and any(f.startswith("state/") for f in m["files"])
+        assert m["step"] == s and "meta.json" in m["files"] and any(f.startswith("arrays/") for f in m["files"])
     assert json.loads((ref / "run.json").read_text())["status"] == "finished"
     assert not (ref / ".jaxmap.lock").exists()
     timing = json.loads((ref / "timing.json").read_text())
@@ -247,7 +247,7 @@ def _damage(ckpt, how):
         f = ckpt / "meta.json"
         f.write_bytes(f.read_bytes()[:20])
         return f
-    data = sorted((p for p in (ckpt / "state").rglob("*") if p.is_file() and p.stat().st_size > 64),
+    data = sorted((p for p in (ckpt / "arrays").rglob("*") if p.is_file() and p.stat().st_size > 64),
                   key=lambda p: -p.stat().st_size)[0]
     if how == "deleted state file":
         data.unlink()

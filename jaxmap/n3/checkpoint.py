@@ -8,11 +8,14 @@ rebuilds the rest exactly:
   - feature rows, their Adam moments and the voxel arrays up to their counts (unused feature rows
     get back their deterministic initial values);
   - the pair store's occupied blocks with their slot numbers.
-A restored state equals the saved one leaf for leaf but for those slots (tested). `save_state_async` copies the
-compact tree to the host (one device->host copy) and writes it in a background thread, so mapping
-goes on while orbax writes; the next save waits for the previous one.
+A restored state equals the saved one leaf for leaf but for those slots (tested). `save_state` writes
+one array at a time, on the CPU straight from the state's buffers: the save holds no copy of the map
+(orbax, before, held 2.5 copies: +2.6 GB at the end of the long drive). `save_state_async` copies the
+compact tree to the host (one copy) and writes it in a background thread, so mapping goes on while
+it is written; the next save waits for the previous one.
 
-meta.json holds the config, the capacities and the per-frame timings so far; `state/` the tree.
+meta.json holds the config, the capacities and the per-frame timings so far; `arrays/` the tree, one
+`.npy` per leaf (`state/`, an orbax tree, in earlier checkpoints: still read).
 Each save is a new checkpoint `<frames mapped>/` of the checkpoint directory, checksummed, and the
 last two are kept (`jaxmap.checkpoint`): `load_state` falls back to the older one when the newer is damaged.
 """
@@ -27,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.checkpoint import load, read_tree, save_tree
+from jaxmap.checkpoint import load, read_tree, save_arrays
 from jaxmap.config import ConfigError, MapConfig, from_dict, to_dict
 from jaxmap.errors import CheckpointError
 from jaxmap.grid import hashing
@@ -37,49 +40,98 @@ _STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames
                        "last_hit")
 
 
-def _rows(x, n: int) -> np.ndarray:
-    """The first n rows, padded to at least one (orbax stores no zero-size arrays)."""
-    x = np.asarray(x)
-    return x[:max(n, 1)] if len(x) else np.zeros((1,) + x.shape[1:], x.dtype)
+def _in_host_memory(x) -> bool:
+    """Is `x` a numpy array or a jax array held in host memory (the CPU backend)?"""
+    devices = getattr(x, "devices", None)
+    return devices is None or all(d.platform == "cpu" for d in devices())
 
 
-def compact(state: core.N3State) -> dict:
-    """The part of the state in use, as nested dicts of host numpy arrays (counts under "n").
+def _host(x, rows=None, copy: bool = True) -> np.ndarray:
+    """`x`, or its `rows` (a slice or an index array; None = all), as a host array.
 
-    Sliced and gathered on the device first, so only the used rows cross to the host (a full
-    `device_get` would copy the whole capacity: hundreds of MB on the city).
-    """
+    In host memory the rows are read straight out of a view of the buffer; elsewhere they are sliced
+    or gathered on the device first, so only the used rows cross to the host (a full `device_get`
+    would copy the whole capacity). Slicing on the CPU device too would hold the used rows twice
+    (2 GB more at the end of the long drive). `copy`: an own copy, needed when the state's buffers
+    may change before the array is written (the next frame's donated step overwrites them while a
+    background save writes); without it, a slice of a host buffer is a view of it."""
+    if rows is None:
+        return np.array(x) if copy else np.asarray(x)
+    if _in_host_memory(x):
+        v = np.asarray(x)[rows]
+        return np.array(v) if copy and isinstance(rows, slice) else v  # an index array gathers a new array
+    return np.array(x[jnp.asarray(rows) if isinstance(rows, np.ndarray) else rows])
+
+
+def _rows(x, n: int, copy: bool = True) -> np.ndarray:
+    """The first n rows, padded to at least one (orbax stored no zero-size arrays; kept for one format)."""
+    return _host(x, slice(0, max(n, 1)), copy) if len(x) else np.zeros((1,) + x.shape[1:], x.dtype)
+
+
+def _compact_fns(state: core.N3State, copy: bool) -> dict:
+    """The part of the state in use as nested dicts of functions that each return one host array
+    (`_host`): the tables are fetched when their function is called, one at a time."""
     nv, nr = (int(x) for x in jax.device_get((state.voxels.count, state.corners.count)))
     st = state.store
     used = np.nonzero(np.asarray(jax.device_get(st.voxel_of_slot)) >= 0)[0].astype(np.int32)
-    used_j = jnp.asarray(used)
-    vkeys, _ = hashing.entries(state.voxels)
-    ckeys, _ = hashing.entries(state.corners)
     d = state.decoder_opt
+    rows = functools.partial(_rows, copy=copy)
+
+    def later(f, *args):
+        return functools.partial(f, *args)
+
+    def value(x):  # a scalar, the decoder: small, always an own copy
+        return later(_host, x)
+
+    def keys(table, n):
+        return lambda: _rows(hashing.entries(table)[0], n)  # entries are new arrays: no copy needed
+
     tree = {
-        "n": {"voxels": np.int32(nv), "rows": np.int32(nr), "blocks": np.int32(len(used))},
-        "voxel_keys": _rows(vkeys, nv), "corner_keys": _rows(ckeys, nr),
-        "voxel_coord": _rows(state.voxel_coord[:max(nv, 1)], nv),
-        "voxel_corner_rows": _rows(state.voxel_corner_rows[:max(nv, 1)], nv),
-        "voxels_with_corners": state.voxels_with_corners,
-        "feature_table": _rows(state.feature_table[:max(nr, 1)], nr),
-        "feature_count": _rows(state.feature_opt.count[:max(nr, 1)], nr),   # per-row Adam steps
-        "feature_moments": _rows(state.feature_opt.moments[:max(nr, 1)], nr),
-        "decoder": state.decoder, "decoder_opt": {"count": d.count, "mu": d.mu, "nu": d.nu},
-        "store_slots": _rows(used, len(used)),
-        "store": {k: _rows(getattr(st, k)[used_j], len(used)) for k in _STORE_BLOCK_FIELDS},
-        "slot_of_voxel": _rows(st.slot_of_voxel[:max(nv, 1)], nv), "window_ids": st.window_ids,
-        "window_n": st.window_n, "origin_vox": state.origin_vox, "key": state.key, "frame": state.frame,
-        "hyper": {"lr": state.hyper.lr, "beta": state.hyper.beta, "weight_e": state.hyper.weight_e},
+        "n": {"voxels": later(np.int32, nv), "rows": later(np.int32, nr), "blocks": later(np.int32, len(used))},
+        "voxel_keys": keys(state.voxels, nv), "corner_keys": keys(state.corners, nr),
+        "voxel_coord": later(rows, state.voxel_coord, nv),
+        "voxel_corner_rows": later(rows, state.voxel_corner_rows, nv),
+        "voxels_with_corners": value(state.voxels_with_corners),
+        "feature_table": later(rows, state.feature_table, nr),
+        "feature_count": later(rows, state.feature_opt.count, nr),   # per-row Adam steps
+        "feature_moments": later(rows, state.feature_opt.moments, nr),
+        "decoder": jax.tree_util.tree_map(value, state.decoder),
+        "decoder_opt": {"count": value(d.count), "mu": jax.tree_util.tree_map(value, d.mu),
+                        "nu": jax.tree_util.tree_map(value, d.nu)},
+        "store_slots": later(_rows, used, len(used)),
+        "store": {k: (later(rows, getattr(st, k), 0) if len(used) == 0 else later(_host, getattr(st, k), used))
+                  for k in _STORE_BLOCK_FIELDS},
+        "slot_of_voxel": later(rows, st.slot_of_voxel, nv), "window_ids": value(st.window_ids),
+        "window_n": value(st.window_n), "origin_vox": value(state.origin_vox), "key": value(state.key),
+        "frame": value(state.frame),
+        "hyper": {"lr": value(state.hyper.lr), "beta": value(state.hyper.beta), "weight_e": value(state.hyper.weight_e)},
     }
     if state.pool is not None:  # the replay / keyframe ablations: the pool's pairs in use
         npool = int(state.pool.n)
-        tree["pool"] = {k: _rows(getattr(state.pool, k)[:max(npool, 1)], npool)
-                        for k in ("pairs", "surface", "frame", "voxel_row")}
-        tree["n"]["pool"] = np.int32(npool)
-    # Own copies: on the CPU a device array may share its buffer with numpy, and the next frame's
-    # donated step overwrites it while a background save is still writing.
-    return jax.tree_util.tree_map(np.array, tree)
+        tree["pool"] = {k: later(rows, getattr(state.pool, k), npool) for k in ("pairs", "surface", "frame", "voxel_row")}
+        tree["n"]["pool"] = later(np.int32, npool)
+    return tree
+
+
+def _is_fn(x) -> bool:
+    return callable(x)
+
+
+def compact(state: core.N3State) -> dict:
+    """The part of the state in use, as nested dicts of host numpy arrays (own copies; counts under "n")."""
+    return jax.tree_util.tree_map(lambda f: f(), _compact_fns(state, copy=True), is_leaf=_is_fn)
+
+
+def compact_leaves(state: core.N3State) -> list[tuple[str, callable]]:
+    """(name, fn) of every leaf of `compact(state)`, "a/b" naming tree["a"]["b"]; `fn()` fetches the
+    leaf then, as a view of the state's buffer where it can (write it before the state changes)."""
+    return _named(_compact_fns(state, copy=False))
+
+
+def _named(tree) -> list[tuple[str, object]]:
+    """(name, leaf) of a tree of nested dicts, "a/b" naming tree["a"]["b"] (as `read_tree` nests them)."""
+    flat, _ = jax.tree_util.tree_flatten_with_path(tree, is_leaf=_is_fn)
+    return [("/".join(str(k.key) for k in path), x) for path, x in flat]
 
 
 def expand(static: core.N3Static, cfg: MapConfig, caps: core.Capacities, c: dict) -> core.N3State:
@@ -143,24 +195,26 @@ def _meta(cfg: MapConfig, state: core.N3State, timings: list) -> dict:
 
 
 def save_state(path: str, cfg: MapConfig, state: core.N3State, timings: list) -> None:
-    """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are kept)."""
+    """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are
+    kept), one array at a time: on the CPU straight from the state's buffers, with no copy."""
     wait_for_saves()
-    save_tree(path, compact(state), _meta(cfg, state, timings), step=int(state.frame))
+    save_arrays(path, compact_leaves(state), _meta(cfg, state, timings), step=int(state.frame))
 
 
 _PENDING: list = []  # the one background save in flight: [thread, error or None]
 
 
 def save_state_async(path: str, cfg: MapConfig, state: core.N3State, timings: list) -> None:
-    """Like `save_state`, but the write happens in a background thread after one device->host copy
-    of the compact state; call `wait_for_saves()` before relying on the files."""
+    """Like `save_state`, but the write happens in a background thread after one host copy of the
+    compact state; call `wait_for_saves()` before relying on the files."""
     wait_for_saves()
     tree, meta = compact(state), _meta(cfg, state, timings)
     slot = [None, None]
 
     def work():
         try:
-            save_tree(path, tree, meta, step=meta["frame"])
+            save_arrays(path, [(name, functools.partial(np.asarray, x)) for name, x in _named(tree)], meta,
+                        step=meta["frame"])
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
             slot[1] = e
 

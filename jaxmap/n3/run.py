@@ -3,7 +3,7 @@
 A run directory holds:
   config.yaml     the resolved config the run used
   run.json        the command and the run's status (`jaxmap.rundir`; `.jaxmap.lock` while it runs)
-  checkpoint/     the last two checkpoints of the whole map, `<frames>/` (orbax + checksums; written
+  checkpoint/     the last two checkpoints of the whole map, `<frames>/` (one .npy per array + checksums; written
                   every `checkpoint_every` frames, at the end, and on Ctrl-C or SIGTERM), what
                   `--resume` and `jaxmap mesh` read (the newest intact one)
   mesh.ply        the marching-cubes mesh at mesh.resolution_m (world frame)
@@ -108,7 +108,7 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                                     store=info["store_pairs"])
                     bar.update(1)
                 # Written while the next frames map; if the last one is still being written (a GPU maps
-                # 10 frames faster than orbax writes a map), the next frame tries again.
+                # 10 frames faster than a map is written), the next frame tries again.
                 if done_since_save >= every and i + 1 < len(seq) and not checkpoint.saving():
                     mapper.save(ckpt, background=True)
                     done_since_save = 0
