@@ -3,7 +3,7 @@
 Layout of a checkpoint directory (`RUN/checkpoint`), one subdirectory per save, named by its step (the
 frames mapped, for N3), as orbax's CheckpointManager names them:
 
-  <step>/state/          orbax PyTree checkpoint of the state (IMT: the latent map; N3 maps before 0.3), or
+  <step>/state/          orbax PyTree checkpoint of the state (IMT: the latent map; N3 maps of earlier versions), or
   <step>/arrays/         the state as one `.npy` file per leaf, `arrays/<key>/<key>.npy` (N3: the compact
                          `jaxmap.n3.core.N3State`; `save_arrays`): written one leaf at a time, so a save
                          needs no second copy of the map in memory, where orbax holds ~1.4 copies more

@@ -676,7 +676,7 @@ def store_bytes(store) -> int:
 # ---------------------------------------------------------------------------------------------
 
 # (static, capacities, scan bucket, preprocessed rows) -> compiled `step` / `step_raw`, least recently
-# used first. Bounded: an XLA:CPU executable keeps its machine code in hundreds of memory maps, a Linux
+# used first. Bounded: an XLA:CPU frame program keeps its machine code in ~2,000 memory maps, a Linux
 # process may hold 65,530 (vm.max_map_count), and a process that maps many times (a notebook, the test
 # suite) aborted inside XLA once an unbounded cache had kept every program it ever compiled. Capacities
 # only grow during a drive, so a drive never returns to an evicted key.
