@@ -4,7 +4,8 @@ Compiled programs are kept in `~/.cache/jaxmap/xla/<host>`, so a second run (or 
 skips the compiles. `<host>` is a fingerprint of the CPU (model and instruction-set flags): an XLA:CPU
 executable compiled for one CPU can abort the process that loads it on another, and a home directory
 is often shared by machines that differ (a cluster's NFS home, a CI image).
-`JAXMAP_CACHE_DIR=/some/dir` moves the cache; `JAXMAP_CACHE_DIR=` (empty) turns it off. It is enabled when `jaxmap` is imported; `enable()` can be called again with another path.
+`JAXMAP_CACHE_DIR=/some/dir` moves the cache; `JAXMAP_CACHE_DIR=` (empty) turns it off. It is enabled
+when `jaxmap` is imported; `enable()` can be called again with another path.
 The last measured compile time of each program is kept beside it, so logs can say how long a
 compile will take.
 """

@@ -55,8 +55,8 @@ def _host(x, rows=None, copy: bool = True) -> np.ndarray:
     (2 GB more at the end of the long drive). `copy`: an own copy, needed when the state's buffers
     may change before the array is written (the next frame's donated step overwrites them while a
     background save writes); without it, a slice of a host buffer is a view of it."""
-    if rows is None:
-        return np.array(x) if copy else np.asarray(x)
+    if rows is None:  # a scalar or a decoder leaf: small, always an own copy
+        return np.array(x)
     if _in_host_memory(x):
         v = np.asarray(x)[rows]
         return np.array(v) if copy and isinstance(rows, slice) else v  # an index array gathers a new array
@@ -75,16 +75,14 @@ def _compact_fns(state: core.N3State, copy: bool) -> dict:
     st = state.store
     used = np.nonzero(np.asarray(jax.device_get(st.voxel_of_slot)) >= 0)[0].astype(np.int32)
     d = state.decoder_opt
+    later = functools.partial
     rows = functools.partial(_rows, copy=copy)
-
-    def later(f, *args):
-        return functools.partial(f, *args)
 
     def value(x):  # a scalar, the decoder: small, always an own copy
         return later(_host, x)
 
     def keys(table, n):
-        return lambda: _rows(hashing.entries(table)[0], n)  # entries are new arrays: no copy needed
+        return lambda: _rows(hashing.entries(table)[0], n, copy=False)  # entries are new arrays: no copy needed
 
     tree = {
         "n": {"voxels": later(np.int32, nv), "rows": later(np.int32, nr), "blocks": later(np.int32, len(used))},
@@ -98,7 +96,7 @@ def _compact_fns(state: core.N3State, copy: bool) -> dict:
         "decoder": jax.tree_util.tree_map(value, state.decoder),
         "decoder_opt": {"count": value(d.count), "mu": jax.tree_util.tree_map(value, d.mu),
                         "nu": jax.tree_util.tree_map(value, d.nu)},
-        "store_slots": later(_rows, used, len(used)),
+        "store_slots": later(_rows, used, len(used), copy=False),  # `used` is this function's own array
         "store": {k: (later(rows, getattr(st, k), 0) if len(used) == 0 else later(_host, getattr(st, k), used))
                   for k in _STORE_BLOCK_FIELDS},
         "slot_of_voxel": later(rows, st.slot_of_voxel, nv), "window_ids": value(st.window_ids),
@@ -113,13 +111,9 @@ def _compact_fns(state: core.N3State, copy: bool) -> dict:
     return tree
 
 
-def _is_fn(x) -> bool:
-    return callable(x)
-
-
 def compact(state: core.N3State) -> dict:
     """The part of the state in use, as nested dicts of host numpy arrays (own copies; counts under "n")."""
-    return jax.tree_util.tree_map(lambda f: f(), _compact_fns(state, copy=True), is_leaf=_is_fn)
+    return jax.tree_util.tree_map(lambda f: f(), _compact_fns(state, copy=True), is_leaf=callable)
 
 
 def compact_leaves(state: core.N3State) -> list[tuple[str, callable]]:
@@ -130,7 +124,7 @@ def compact_leaves(state: core.N3State) -> list[tuple[str, callable]]:
 
 def _named(tree) -> list[tuple[str, object]]:
     """(name, leaf) of a tree of nested dicts, "a/b" naming tree["a"]["b"] (as `read_tree` nests them)."""
-    flat, _ = jax.tree_util.tree_flatten_with_path(tree, is_leaf=_is_fn)
+    flat, _ = jax.tree_util.tree_flatten_with_path(tree, is_leaf=callable)
     return [("/".join(str(k.key) for k in path), x) for path, x in flat]
 
 
