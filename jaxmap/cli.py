@@ -1,11 +1,10 @@
-"""The `jaxmap` command. Each subcommand imports its implementation lazily, so `jaxmap --help`
-is instant and the mapping core never pulls open3d in unless a subcommand needs it."""
+"""The `jaxmap` command line: its arguments (one function per command) and `main`, which runs the
+command of the same name in `jaxmap.commands` and turns a user's mistake into one line, not a traceback.
+`jaxmap --help` is instant: nothing heavy is imported before a command needs it."""
 from __future__ import annotations
 
 import argparse
-import json
 import logging
-import os
 import sys
 
 
@@ -32,13 +31,7 @@ def _add_view_args(p: argparse.ArgumentParser) -> None:
                    help="re-extract the viewer's mesh every N frames, in a background thread (0 = never)")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxmap", description="Neural implicit 3D mapping in JAX.")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
-    parser.add_argument("--debug", action="store_true",
-                        help="show the Python traceback of an error (by default: one line saying what to fix)")
-    sub = parser.add_subparsers(dest="command", required=True)
-
+def _synth_args(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic sequence with exact ground truth")
     p.add_argument("scene", choices=["city", "room"])
     p.add_argument("--out", required=True, help="output directory")
@@ -64,6 +57,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "returns at a range uniform in 0.5-50 m), beam_offsets (a constant N(0, 1 cm) range offset "
                         "per beam)")
 
+
+def _eval_args(sub) -> None:
     p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
     p.add_argument("mesh")
     p.add_argument("--gt", required=True, help="sequence directory with gt_points.ply and scans")
@@ -83,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="skip the ghost area (predicted surface where only moving objects were; sequences with "
                         "moving_objects.json or pedestrians.json)")
 
+
+def _baseline_args(sub) -> None:
     p = sub.add_parser("baseline", help="classical baselines on the same data")
     p.add_argument("method", choices=["tsdf"])
     p.add_argument("data")
@@ -91,6 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-range", type=float, default=20.0, help="crop radius in metres")
     p.add_argument("--res", type=float, default=None, help="marching-cubes resolution (default = voxel)")
 
+
+def _map_args(sub) -> None:
     p = sub.add_parser("map", help="N3 neural SDF mapping of a sequence")
     _add_config_args(p, default_config="")
     p.add_argument("--resume", metavar="RUN_DIR",
@@ -100,41 +99,57 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-mesh", action="store_true", help="map and checkpoint only: no mesh, no metrics")
     _add_view_args(p)
 
+
+def _mesh_args(sub) -> None:
     p = sub.add_parser("mesh", help="re-extract a mesh from a saved map")
     p.add_argument("run", help="run directory")
     p.add_argument("--res", type=float, default=None, help="marching-cubes resolution in metres")
     p.add_argument("--out", default=None, help="output mesh (default RUN/mesh_<res>.ply)")
 
+
+def _demo_args(sub) -> None:
     p = sub.add_parser("demo", help="synthetic city -> neural map -> mesh -> metrics")
     p.add_argument("--data", default="data/city_demo")
     p.add_argument("--out", default="runs/demo")
 
+
+def _prior_args(sub) -> None:
     p = sub.add_parser("prior", help="train or evaluate the equivariant encoder/decoder prior")
     p.add_argument("action", choices=["train", "eval"])
     _add_config_args(p, default_config="configs/prior.yaml", example="train.steps=2000")
 
+
+def _imt_args(sub) -> None:
     p = sub.add_parser("imt", help="transformable latent map of a sequence: encode, fuse, mesh, metrics")
     _add_config_args(p, default_config="configs/room_imt.yaml", example="map.voxel_size_m=0.05")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
 
+
+def _slam_args(sub) -> None:
     p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
     _add_config_args(p, default_config="configs/room_slam.yaml", example="frontend.odometry.method=kiss_icp")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
 
+
+def _info_args(sub) -> None:
     p = sub.add_parser("info", help="what a sequence is: kind, frames, ROS bag topics with types and counts")
     p.add_argument("path", help="sequence directory or file (KITTI, depth, ROS bag/MCAP, TUM RGB-D, Replica, LAS)")
     p.add_argument("--kind", default="auto", help="sequence kind (default: detected, as data.kind)")
     p.add_argument("--topic", default="", help="ROS bag: the PointCloud2 topic to count frames of (data.topic)")
 
+
+def _view_args(sub) -> None:
     p = sub.add_parser("view", help="open a finished run in the browser viewer (mesh, trajectory, errors)")
     p.add_argument("run", help="run directory (mesh.ply, config.yaml, trajectory_kitti.txt)")
     p.add_argument("--port", type=int, default=8080, help="viewer port (bound to 0.0.0.0)")
     p.add_argument("--no-wait", action="store_true", help="load the scene and exit (for tests)")
 
+
+def _bench_args(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
     p.add_argument("suite", choices=["n3", "imt", "slam"])
     p.add_argument("--data", default=None,
@@ -152,6 +167,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="n3 --suite: comma-separated subset of the suite's cities (the variant's other rows in "
                         "OUT/suite.json are kept)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jaxmap", description="Neural implicit 3D mapping in JAX.")
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--debug", action="store_true",
+                        help="show the Python traceback of an error (by default: one line saying what to fix)")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _info_args, _view_args, _bench_args):
+        add(sub)
     return parser
 
 
@@ -170,9 +195,11 @@ def main(argv: list[str] | None = None) -> int:
     from jaxmap.errors import JaxmapError
     from jaxmap.rundir import exit_code
 
+    from jaxmap import commands
+
     try:
         with logging_redirect_tqdm():  # log lines above the progress bars, not through them
-            return _dispatch(args)
+            return getattr(commands, args.command)(args)
     except JaxmapError as e:
         if args.debug:
             raise
@@ -191,106 +218,6 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jaxmap {args.command}: error: {e.filename}: {e.strerror}; check the path and its permissions "
               "(--debug shows the traceback)", file=sys.stderr)
         return 2
-
-
-def _dispatch(args) -> int:
-    if args.command == "synth":
-        if args.scene == "city":
-            from jaxmap.synth.city import generate_city as gen
-        else:
-            from jaxmap.synth.room import generate_room as gen
-        from jaxmap.rundir import output_dir
-
-        kw = {"pedestrians": True} if args.pedestrians else {}
-        if args.pedestrians and args.scene != "city":
-            raise SystemExit("jaxmap synth: --pedestrians is for the city scene")
-        if args.long:
-            if args.scene != "city":
-                raise SystemExit("jaxmap synth: --long is for the city scene")
-            if args.small:
-                raise SystemExit("jaxmap synth: --long and --small are different presets; pick one")
-            kw["long"] = True
-        if args.scene == "city":
-            kw["layout"] = args.layout
-            if args.beams is not None:
-                kw["beams"] = args.beams
-            if args.traffic:
-                kw["traffic"] = args.traffic
-            if args.realistic is not None:
-                kw["realistic"] = args.realistic
-        elif args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None:
-            raise SystemExit("jaxmap synth: --layout, --beams, --traffic and --realistic are for the city scene")
-        output_dir(args.out)
-        stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
-        print(json.dumps(stats))
-        return 0
-    if args.command == "eval":
-        from jaxmap.metrics import evaluate_mesh_file, format_metrics
-        from jaxmap.rundir import output_file
-
-        if args.json_out:
-            output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
-        m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
-                               cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
-                               n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor,
-                               ghost=not args.no_ghost)
-        print(format_metrics(m, "mesh"))
-        if args.json_out:
-            with open(args.json_out, "w") as f:
-                json.dump(m, f)
-        print(json.dumps(m))
-        return 0
-    if args.command == "baseline":
-        from jaxmap.baselines.tsdf import tsdf_from_sequence
-        from jaxmap.rundir import output_file
-
-        output_file(args.out)
-        info = tsdf_from_sequence(args.data, voxel_m=args.voxel, out_mesh=args.out,
-                                  max_range_m=args.max_range, mesh_res_m=args.res)
-        print(json.dumps(info))
-        return 0
-    if args.command in ("map", "mesh", "demo"):
-        from jaxmap.n3 import run as n3run
-
-        return getattr(n3run, f"cli_{args.command}")(args)
-    if args.command == "prior":
-        from jaxmap.imt import prior
-
-        return prior.cli_train(args) if args.action == "train" else prior.cli_eval(args)
-    if args.command == "slam":
-        from jaxmap.slam import run as slam_run
-
-        return slam_run.cli_slam(args)
-    if args.command == "imt":
-        from jaxmap.imt import run as imt_run
-
-        return imt_run.cli_imt(args)
-    if args.command == "info":
-        from jaxmap.info import format_info, sequence_info
-
-        print(format_info(sequence_info(args.path, kind=args.kind, topic=args.topic)))
-        return 0
-    if args.command == "view":
-        from jaxmap.viewer import view_run
-
-        return view_run(args.run, port=args.port, wait=not args.no_wait)
-    if args.command == "bench":
-        args.out = args.out or f"runs/bench_{args.suite}"
-        if args.suite == "slam":
-            from jaxmap.bench import slam as bench_slam
-
-            args.data = args.data or "data/room_noisy"
-            return bench_slam.main(args)
-        if args.suite == "imt":
-            from jaxmap.bench import imt as bench_imt
-
-            args.data = args.data or "data/room_bench"
-            return bench_imt.main(args)
-        from jaxmap.bench import n3 as bench_n3
-
-        args.data = args.data or "data/city_bench"
-        return bench_n3.main(args)
-    raise AssertionError(args.command)
 
 
 if __name__ == "__main__":

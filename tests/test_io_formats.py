@@ -626,7 +626,7 @@ def test_detect_and_unknown(tmp_path):
 
 def test_config_topic_reaches_the_bag(tmp_path, room):
     from jaxmap.config import DataConfig, ImtConfig
-    from jaxmap.imt.run import open_run_sequence
+    from jaxmap.frame_loop import open_run_sequence
 
     _, room_seq, frames = room
     entries = room_bag_entries(room_seq, frames[:1], cloud_topic="/a")

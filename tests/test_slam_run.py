@@ -76,10 +76,11 @@ def test_slam_front_end_drives_the_map_on_a_dense_room_stretch(tmp_path):
     np.testing.assert_allclose(out["ate_slam"]["rmse_m"], out["ate_odometry"]["rmse_m"], rtol=1e-6)
     # ... close to the map built with the true poses (a ratio: robust to the evaluator's protocol; measured
     # 1.62 with the sub-centimetre odometry error of these 8 frames)
-    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence
+    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.imt.run import build_map
 
     icfg = cfg.imt()
-    ref = mesh_and_evaluate(build_map(icfg, open_run_sequence(icfg), progress=False), icfg, str(tmp_path), "gt.ply")
+    ref = mesh_and_metrics(build_map(icfg, open_run_sequence(icfg), progress=False), icfg, str(tmp_path), "gt.ply")
     assert out["metrics"]["chamfer_l1_cm"] < 2.0 * ref["metrics"]["chamfer_l1_cm"], (out["metrics"], ref["metrics"])
     saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert saved["keyframes"] == out["keyframes"] == 8

@@ -188,7 +188,8 @@ def main(args) -> int:
     from jaxmap.bench import base_overrides
     from jaxmap.config import ImtConfig, load_config, shipped_config_path
     from jaxmap.imt.mapper import ImtMapper
-    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence, summarize
+    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.imt.run import build_map
     from jaxmap.synth.room import generate_room
 
     data, out = args.data, args.out
@@ -212,20 +213,20 @@ def main(args) -> int:
         gt_poses = np.asarray([seq.frame(i).pose for i in range(n)])
         rows, remaps = {}, {}
         m_gt = build_map(cfg, seq, desc="GT poses")
-        rows["GT poses"] = mesh_and_evaluate(m_gt, cfg, out, "mesh_gt.ply")
+        rows["GT poses"] = mesh_and_metrics(m_gt, cfg, out, "mesh_gt.ply")
         for name, (deg, metres) in DRIFTS.items():
             m_dr = build_map(cfg, seq, poses=drift_poses(gt_poses, deg, metres), desc=f"drift {name}")
             tag = name.split()[0]
-            rows[f"drifted {name}"] = mesh_and_evaluate(m_dr, cfg, out, f"mesh_drift{tag}.ply")
+            rows[f"drifted {name}"] = mesh_and_metrics(m_dr, cfg, out, f"mesh_drift{tag}.ply")
             t0 = time.perf_counter()
             changed = m_dr.remap(gt_poses)
             remaps[name] = {"keyframes_moved": len(changed), "seconds": time.perf_counter() - t0,
                             "load_avg": os.getloadavg()[0]}
-            rows[f"remapped {name}"] = mesh_and_evaluate(m_dr, cfg, out, f"mesh_remap{tag}.ply")
+            rows[f"remapped {name}"] = mesh_and_metrics(m_dr, cfg, out, f"mesh_remap{tag}.ply")
         res["recon"] = {k: v.get("metrics", {}) for k, v in rows.items()}
         res["remap"] = remaps
         ids = sorted(set(np.linspace(1, n - 1, 5).round().astype(int).tolist()))
-        res["timing"] = {**summarize(m_gt.timings), **time_encode(m_gt, seq, ids),
+        res["timing"] = {**m_gt.timing_summary(), **time_encode(m_gt, seq, ids),
                          **time_remap_one(m_gt, list(range(0, len(m_gt.store), 7)))}
         res["sizes"] = {**m_gt.sizes(), **store_vs_points(m_gt)}
         _print_recon(res)

@@ -186,8 +186,8 @@ def _quality_row(s: dict) -> dict:
 def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
     from jaxmap.baselines.tsdf import tsdf_from_sequence
     from jaxmap.config import load_config
-    from jaxmap.metrics import evaluate_mesh_file
-    from jaxmap.n3.run import _frame_selection, city_config_path
+    from jaxmap.frame_loop import evaluate_run_mesh
+    from jaxmap.n3.run import city_config_path
 
     cfg0 = load_config(city_config_path(), [f"data.path={data}"] + base)
     t0 = time.perf_counter()
@@ -196,9 +196,7 @@ def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
                               max_range_m=cfg0.preprocess.max_range_m, min_range_m=cfg0.preprocess.min_range_m,
                               mesh_res_m=cfg0.mesh.resolution_m, end_frame=cfg0.data.end_frame, progress=True)
     secs = time.perf_counter() - t0
-    m = evaluate_mesh_file(mesh_path, data, threshold_m=cfg0.eval.threshold_m,
-                           cull_distance_m=cfg0.eval.cull_distance_m, eval_radius_m=cfg0.eval.eval_radius_m,
-                           n_samples=cfg0.eval.n_samples, floor=True, **_frame_selection(cfg0))
+    m = evaluate_run_mesh(mesh_path, cfg0)
     n = info.get("frames", 1) or 1
     return {"metrics": m, "s_per_frame": secs / n, "median_total_s": float("nan"), "store_flat": True,
             "store_mb_max": 0.0, "max_store_pairs": 0, "peak_rss_mb": float("nan")}

@@ -34,6 +34,7 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     import jax
 
     from jaxmap.config import load_config
+    from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
     from jaxmap.io import open_sequence
     from jaxmap.n3 import core
     from jaxmap.n3.mapper import N3Mapper
@@ -53,14 +54,17 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
         name = jax.tree_util.keystr(path).lstrip(".").split(".")[0].split("[")[0]
         state[name] = state.get(name, 0.0) + _mb(x.size * x.dtype.itemsize)
     out["state"] = state
-    peak_frames = 0.0
-    for i in range(min(frames, len(seq))):
-        fr = seq.frame(i)
-        info = m.add_frame(fr.points, fr.pose)
-        if i == 0:
-            out["rss_after_first_frame"] = hostmem.rss_mb()
-        peak_frames = max(peak_frames, hostmem.rss_mb())
-    out["rss_frames_max"] = peak_frames
+    rss = []
+
+    def step(frame: Frame):
+        info = m.add_frame(frame.points, frame.pose)
+        rss.append(hostmem.rss_mb())
+        return info, frame.pose
+
+    n = min(frames, len(seq))
+    run_frames(Prefetcher(seq, 0, n), step, total=n, progress=Progress(enabled=False))
+    out["rss_after_first_frame"], out["rss_frames_max"] = rss[0], max(rss)
+    info = m.timings[-1]
     out["rss_peak_frames"] = hostmem.peak_rss_mb()
     import tempfile
 

@@ -33,7 +33,8 @@ from jaxmap.bench import print_map_table
 def main(args) -> int:
     from jaxmap.bench import base_overrides
     from jaxmap.config import load_config, shipped_config_path
-    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence
+    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.imt.run import build_map
     from jaxmap.slam.run import SlamConfig, run_slam
     from jaxmap.synth.room import generate_room
 
@@ -84,10 +85,10 @@ def main(args) -> int:
     icfg = cfg.imt()
     seq = open_run_sequence(icfg)
     gt = build_map(icfg, seq, desc="GT poses")
-    m_gt = mesh_and_evaluate(gt, icfg, out, "mesh_gt.ply")
+    m_gt = mesh_and_metrics(gt, icfg, out, "mesh_gt.ply")
     odo = np.asarray(slam_odometry(cfg.output))
     od = build_map(icfg, seq, poses=odo, desc="odometry poses")
-    m_od = mesh_and_evaluate(od, icfg, out, "mesh_odometry.ply")
+    m_od = mesh_and_metrics(od, icfg, out, "mesh_odometry.ply")
     res = {"frames": slam["frames"], "keyframes": slam["keyframes"], "loops": slam["loops"],
            "ate": {"odometry": slam.get("ate_odometry"), "slam": slam.get("ate_slam")},
            "recon": {"GT poses": m_gt.get("metrics", {}), "odometry poses": m_od.get("metrics", {}),
@@ -138,7 +139,8 @@ def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
 
     from jaxmap.bench import base_overrides
     from jaxmap.config import load_config, shipped_config_path
-    from jaxmap.imt.run import build_map, mesh_and_evaluate, open_run_sequence
+    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.imt.run import build_map
     from jaxmap.slam.run import SlamConfig, run_slam
 
     os.makedirs(out, exist_ok=True)
@@ -154,8 +156,8 @@ def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
     if compare:
         icfg = cfg.imt()
         seq = open_run_sequence(icfg)
-        gt = mesh_and_evaluate(build_map(icfg, seq, desc="GT poses"), icfg, out, "mesh_gt.ply")
-        od = mesh_and_evaluate(build_map(icfg, seq, poses=np.asarray(slam_odometry(cfg.output)),
+        gt = mesh_and_metrics(build_map(icfg, seq, desc="GT poses"), icfg, out, "mesh_gt.ply")
+        od = mesh_and_metrics(build_map(icfg, seq, poses=np.asarray(slam_odometry(cfg.output)),
                                          desc="odometry poses"), icfg, out, "mesh_odometry.ply")
         res["recon"] = {"GT poses": gt.get("metrics", {}), "odometry poses": od.get("metrics", {}),
                         **res["recon"]}

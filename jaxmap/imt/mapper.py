@@ -20,6 +20,7 @@ import numpy as np
 
 from jaxmap.config import ImtConfig, from_dict, to_dict
 from jaxmap.errors import DataError
+from jaxmap.frame_loop import medians
 from jaxmap.geometry import transform_points, validate_pose
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.meshing import mesh as mesh_map
@@ -120,6 +121,17 @@ class ImtMapper:
         """(sdf [P] m, std [P] m, valid [P]) at world points [P,3]; voxels with at most mesh.min_weight are
         not decoded (as for the mesh)."""
         return query(self.prior, self.map, points_w, min_weight=self.cfg.mesh.min_weight)
+
+    def timing_summary(self, skip_first: int = 1) -> dict:
+        """Per-frame medians after the first `skip_first` (compiling) frames, the count of frames with
+        nothing left to encode, and the map's and keyframe store's sizes (timing.json)."""
+        return {**medians(self.timings, ("preprocess_s", "encode_s", "fuse_s"), skip_first), **self.sizes()}
+
+    def live_mesh(self) -> dict:
+        """`attach_viewer` arguments for a live view: the mesh at half the lattice resolution (a preview;
+        the final mesh is the full one), made in a background thread."""
+        res = max(2, (self.cfg.mesh.resolution // 2) // 2 * 2)
+        return {"mesh_fn": lambda: self.mesh(resolution=res)}
 
     def keyframe_poses(self) -> np.ndarray:
         return self.store.poses()

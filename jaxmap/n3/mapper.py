@@ -15,8 +15,10 @@ import numpy as np
 
 from jaxmap import hostmem
 from jaxmap.config import MapConfig
+from jaxmap.frame_loop import medians
 from jaxmap.n3 import core, scan
 from jaxmap.n3.query import extract_mesh_of, query_world
+from jaxmap.viewer import copy_arrays
 
 
 class N3Mapper:
@@ -123,6 +125,29 @@ class N3Mapper:
         """Marching-cubes mesh of the zero level set, world frame (trimesh.Trimesh)."""
         mcf = self.cfg.mesh.min_component_faces if min_component_faces is None else min_component_faces
         return extract_mesh_of(self.static, self.state, float(res or self.cfg.mesh.resolution_m), mcf)
+
+    def timing_summary(self, skip_first: int = 1) -> dict:
+        """Per-frame medians and p95 over frames after the first `skip_first` (compiling) frames, the
+        count of frames that had no point to map, and the store's and table's sizes (timing.json)."""
+        out = medians(self.timings, ("preprocess_s", "map_s", "total_s"), skip_first)
+        rows = self.timings[skip_first:] if len(self.timings) > skip_first else self.timings
+        vals = [r["total_s"] for r in rows if "total_s" in r]
+        out["p95_total_s"] = float(np.percentile(vals, 95)) if vals else float("nan")
+        if self.timings:
+            out["max_store_pairs"] = int(max(r["store_pairs"] for r in self.timings))
+            out["final_feature_rows"] = int(self.timings[-1]["feature_rows"])
+        return out
+
+    def live_mesh(self) -> dict:
+        """`attach_viewer` arguments for a live view: a coarse mesh (twice the mesh spacing where it stays on
+        the lattice) made in a background thread from a copy of the state (the next frame donates its
+        buffers)."""
+        res = 2 * self.cfg.mesh.resolution_m
+        if abs(self.cfg.grid.leaf_vox_size / res - round(self.cfg.grid.leaf_vox_size / res)) > 1e-6:
+            res = self.cfg.mesh.resolution_m
+        mcf = self.cfg.mesh.min_component_faces
+        return {"snapshot_fn": lambda: copy_arrays((self.static, self.state)),
+                "mesh_fn": lambda s: extract_mesh_of(*s, res, mcf)}
 
     def save(self, path: str, background: bool = False) -> None:
         """Checkpoint to directory `path`; `background`: write in a thread (see n3.checkpoint)."""

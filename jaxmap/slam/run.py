@@ -28,30 +28,34 @@ import json
 import logging
 import os
 import re
-import sys
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig,
-                           PreprocessConfig, config_from_args, load_config, save_config)
+from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig, MapConfig,
+                           PreprocessConfig, load_config, save_config)
 from jaxmap.errors import DataError, JaxmapError
+from jaxmap.frame_loop import (Frame, LoopResult, Prefetcher, Progress, finish_run, open_run_sequence, open_viewer,
+                               run_frames)
 from jaxmap.geometry import compose
-from jaxmap.slam.frontend import FrontEndConfig
+from jaxmap.imt.mapper import ImtMapper
+from jaxmap.n3.mapper import N3Mapper
+from jaxmap.slam.frontend import FrontEnd, FrontEndConfig
+from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_tum
 
 log = logging.getLogger("jaxmap")
 
 
 def _register_rules() -> None:
     """Value rules of the front end's config keys, checked at load (see `jaxmap.config.RULES`)."""
-    from jaxmap.config import _host_preprocess_checks, at_least, one_of, register_rules
+    from jaxmap.config.rules import at_least, host_preprocess_checks, one_of, register_rules
     from jaxmap.slam.frontend import EDGE_INFORMATION
     from jaxmap.slam.odometry import ODOMETRY_METHODS, OdometryConfig
 
     register_rules(OdometryConfig, method=one_of(*ODOMETRY_METHODS), max_iter=at_least(1), normals_k=at_least(3))
     register_rules(FrontEndConfig, edge_information=one_of(*EDGE_INFORMATION))
-    register_rules(SlamConfig, checks=[_host_preprocess_checks])
+    register_rules(SlamConfig, checks=[host_preprocess_checks])
 
 
 @dataclass(frozen=True)
@@ -78,46 +82,50 @@ class SlamConfig:
 _register_rules()
 
 
-def _bar(total, desc, enabled):
-    if not enabled:
-        return None
-    from tqdm import tqdm
+class FrontEndStep:
+    """The SLAM step of the frame loop: the front end estimates the frame's pose; a keyframe is fused
+    into the map at it; an accepted loop remaps the map to the optimised keyframe poses."""
 
-    return tqdm(total=total, unit="frame", desc=desc, file=sys.stderr)
+    def __init__(self, cfg: SlamConfig, seq, out_dir: str, mapper, viewer=None):
+        self.cfg, self.out_dir, self.mapper, self.viewer = cfg, out_dir, mapper, viewer
+        self.fe = FrontEnd(cfg.frontend, initial_pose=seq.frame(0).pose)
+        self.loops: list[dict] = []
+        self.odometry: list[np.ndarray] = []   # odometry alone: the chain of frame-to-frame motions
 
-
-def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, hooks=None) -> dict:
-    """Our own front end drives the map. Returns trajectories and per-loop records.
-    hooks: a `jaxmap.viewer.ViewerHooks` shown every frame (None = no viewer)."""
-    from jaxmap.slam.frontend import FrontEnd
-
-    fe = FrontEnd(cfg.frontend, initial_pose=seq.frame(0).pose)
-    loops, odo = [], []
-    bar = _bar(len(seq), "slam", progress)
-    for i in range(len(seq)):
-        fr = seq.frame(i)
+    def __call__(self, frame: Frame) -> tuple[dict, np.ndarray]:
+        mapper = self.mapper
         try:
-            r = fe.add_frame(fr.points)
-            # odometry alone: the chain of frame-to-frame motions (the velocity of the step just made),
-            # which loop corrections do not touch
-            odo.append(fr.pose.copy() if i == 0 else compose(odo[-1], fe.odometry.velocity))
+            r = self.fe.add_frame(frame.points)
+            # the velocity of the step just made, which loop corrections do not touch
+            self.odometry.append(frame.pose.copy() if not self.odometry
+                                 else compose(self.odometry[-1], self.fe.odometry.velocity))
             if r.is_keyframe:
-                mapper.add_frame(fr.points, r.pose, frame=fr.index, pose_source="jaxmap's SLAM front end")
+                mapper.add_frame(frame.points, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end")
                 if r.optimized:
-                    loops.append(_close_loop(cfg, mapper, r.keyframe_poses, out_dir, len(loops),
-                                             {"frame": int(fr.index), "keyframe": int(r.keyframe_id),
-                                              "optimize_s": r.timings["optimize_s"],
-                                              "fitness": float(r.loop.fitness), "rmse_m": float(r.loop.rmse)}))
+                    self.loops.append(_close_loop(self.cfg, mapper, r.keyframe_poses, self.out_dir, len(self.loops),
+                                                  {"frame": frame.index, "keyframe": int(r.keyframe_id),
+                                                   "optimize_s": r.timings["optimize_s"],
+                                                   "fitness": float(r.loop.fitness), "rmse_m": float(r.loop.rmse)}))
         except Exception as e:  # the front end or the mapper failed: keep what was mapped, say where
-            raise _failed_at(mapper, out_dir, int(fr.index), e) from e
-        if hooks is not None:
-            _view_frame(hooks, fe, fr, r, mapper)
-        if bar is not None:
-            bar.set_postfix(kf=len(mapper.store), loops=len(loops), ok=r.odometry_ok)
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    return {"trajectory": fe.trajectory(), "odometry": np.asarray(odo), "loops": loops,
+            raise _failed_at(mapper, self.out_dir, frame.index, e) from e
+        record = dict(r.timings, kf=len(mapper.store), loops=len(self.loops), ok=r.odometry_ok)
+        if r.is_keyframe and mapper.timings:
+            record.update({k: v for k, v in mapper.timings[-1].items() if k.endswith("_s")})
+        if self.viewer is not None and r.optimized:
+            self.viewer.on_trajectory(self.fe.trajectory())
+            if self.fe.loops:
+                c, k = self.fe.loops[-1]
+                self.viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
+        return record, r.pose
+
+
+def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, viewer=None) -> dict:
+    """Our own front end drives the map. Returns trajectories and per-loop records.
+    viewer: a `jaxmap.viewer.ViewerHooks` shown every frame (None = no viewer)."""
+    step = FrontEndStep(cfg, seq, out_dir, mapper, viewer)
+    bar = Progress("slam", progress, postfix=lambda r: {"kf": r["kf"], "loops": r["loops"], "ok": r["ok"]})
+    run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq), progress=bar, viewer=viewer)
+    return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
             "keyframe_frames": list(mapper.store.frames)}
 
 
@@ -131,20 +139,6 @@ def _failed_at(mapper, out_dir: str, frame: int, err: Exception) -> JaxmapError:
     except Exception as e2:  # noqa: BLE001 - the first error is the one to report
         saved = f"saving a checkpoint failed too ({type(e2).__name__}: {e2})"
     return JaxmapError(f"jaxmap slam failed at frame {frame}: {type(err).__name__}: {err}; {saved}")
-
-
-def _view_frame(hooks, fe, fr, r, mapper) -> None:
-    from jaxmap.viewer import to_world
-
-    info = dict(r.timings)
-    if r.is_keyframe and mapper.timings:
-        info.update({k: v for k, v in mapper.timings[-1].items() if k.endswith("_s")})
-    hooks.on_frame(int(fr.index), to_world(fr.points, r.pose, hooks.viewer.max_points), r.pose, info)
-    if r.optimized:
-        hooks.on_trajectory(fe.trajectory())
-        if fe.loops:
-            c, k = fe.loops[-1]
-            hooks.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
 
 
 def _close_loop(cfg, mapper, poses, out_dir, n, record):
@@ -172,85 +166,85 @@ def snapshot_files(directory: str) -> list[str]:
     return [os.path.join(directory, n) for n in sorted(names, key=key)]
 
 
-def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, hooks=None) -> dict:
-    """Pose snapshots of another SLAM system drive the map (see the module docstring)."""
-    from jaxmap.slam.trajectory import read_pose_snapshot
-
-    files = snapshot_files(cfg.external_poses)
-    updates, poses = [], np.zeros((0, 4, 4))
-    bar = _bar(len(seq), "slam (external poses)", progress)
-    for n, path in enumerate(files):
+def read_snapshots(directory: str, frames: int) -> list[tuple[str, np.ndarray]]:
+    """(path, poses [n_i, 4, 4]) of every pose snapshot of `directory` in order, checked: each covers at
+    most the `frames` of the selection and at least every frame of the snapshots before it."""
+    out, covered = [], 0
+    for path in snapshot_files(directory):
         poses = read_pose_snapshot(path)
-        if len(poses) > len(seq):
-            raise DataError(f"{path}: {len(poses)} poses but the sequence selection has {len(seq)} frames")
-        if len(poses) < len(mapper.store):
-            raise DataError(f"{path}: {len(poses)} poses, fewer than the {len(mapper.store)} frames of the "
+        if len(poses) > frames:
+            raise DataError(f"{path}: {len(poses)} poses but the sequence selection has {frames} frames")
+        if len(poses) < covered:
+            raise DataError(f"{path}: {len(poses)} poses, fewer than the {covered} frames of the "
                             "previous snapshots; each snapshot must cover every frame fused so far")
-        t0 = time.perf_counter()
-        changed = mapper.remap(poses[:len(mapper.store)]) if len(mapper.store) else []
-        remap_s = time.perf_counter() - t0
-        new = range(len(mapper.store), len(poses))
-        for k in new:
-            fr = seq.frame(k)
-            info = mapper.add_frame(fr.points, poses[k], frame=fr.index)
-            if hooks is not None:
-                from jaxmap.viewer import to_world
+        out.append((path, poses))
+        covered = len(poses)
+    return out
 
-                hooks.on_frame(int(fr.index), to_world(fr.points, poses[k], hooks.viewer.max_points), poses[k], info)
-            if bar is not None:
-                bar.update(1)
-        updates.append({"snapshot": os.path.basename(path), "poses": len(poses), "remapped": changed,
-                        "added": len(new), "remap_s": remap_s})
-    if bar is not None:
-        bar.close()
-    return {"trajectory": poses, "odometry": None, "loops": updates, "keyframe_frames": list(mapper.store.frames)}
+
+class SnapshotStep:
+    """The step of the frame loop when another SLAM system's pose snapshots drive the map: before the
+    first frame that snapshot i adds, the map is remapped to snapshot i's poses (and to those of the
+    snapshots before it that added no frame); the frame is fused at its snapshot pose."""
+
+    def __init__(self, snapshots: list[tuple[str, np.ndarray]], mapper):
+        self.snapshots, self.mapper = snapshots, mapper
+        self.applied = 0                 # snapshots whose remap is done
+        self.updates: list[dict] = []
+
+    def _apply(self, n: int) -> None:
+        """Remap to snapshot n's poses of the frames fused so far."""
+        path, poses = self.snapshots[n]
+        mapper, fused = self.mapper, len(self.mapper.store)
+        t0 = time.perf_counter()
+        changed = mapper.remap(poses[:fused]) if fused else []
+        self.updates.append({"snapshot": os.path.basename(path), "poses": len(poses), "remapped": changed,
+                             "added": len(poses) - fused, "remap_s": time.perf_counter() - t0})
+        self.applied = n + 1
+
+    def finish(self) -> np.ndarray:
+        """Apply the snapshots left (those that add no frame); the last snapshot's poses."""
+        while self.applied < len(self.snapshots):
+            self._apply(self.applied)
+        return self.snapshots[-1][1] if self.snapshots else np.zeros((0, 4, 4))
+
+    def __call__(self, frame: Frame) -> tuple[dict, np.ndarray]:
+        k = frame.position
+        while self.applied == 0 or len(self.snapshots[self.applied - 1][1]) <= k:
+            self._apply(self.applied)
+        pose = self.snapshots[self.applied - 1][1][k]
+        return self.mapper.add_frame(frame.points, pose, frame=frame.index), pose
+
+
+def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, viewer=None) -> dict:
+    """Pose snapshots of another SLAM system drive the map (see the module docstring)."""
+    step = SnapshotStep(read_snapshots(cfg.external_poses, len(seq)), mapper)
+    total = len(step.snapshots[-1][1])
+    run_frames(Prefetcher(seq, 0, total), step, total=total, progress=Progress("slam (external poses)", progress),
+               viewer=viewer)
+    poses = step.finish()
+    return {"trajectory": poses, "odometry": None, "loops": step.updates, "keyframe_frames": list(mapper.store.frames)}
 
 
 def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
              view: dict | None = None) -> dict:
-    """view: {"port", "mesh_every"} for a live viewer (see `jaxmap.imt.run.start_view`), None = none."""
-    from jaxmap.imt.mapper import ImtMapper
-    from jaxmap.imt.run import finish_view, mesh_and_evaluate, open_run_sequence, start_view, summarize
-    from jaxmap.slam.trajectory import ate, write_kitti, write_tum
-
+    """view: {"port", "mesh_every"} for a live viewer (`jaxmap.frame_loop.open_viewer`), None = none."""
+    t_start = time.perf_counter()
     os.makedirs(out_dir, exist_ok=True)
     save_config(cfg, os.path.join(out_dir, "config.yaml"))
     icfg = cfg.imt()
     seq = open_run_sequence(icfg)
     mapper = ImtMapper(icfg)
     run = run_external if cfg.external_poses else run_frontend
-    hooks = start_view(view, mapper)
-    try:
-        res = run(cfg, seq, out_dir, mapper, progress, hooks=hooks)
-    except BaseException:
-        if hooks is not None:
-            hooks.close()
-        raise
+    viewer = open_viewer(view, mapper)
+    res = run(cfg, seq, out_dir, mapper, progress, viewer=viewer)
     mapper.save(os.path.join(out_dir, "checkpoint"))
+    loop = LoopResult(len(res["trajectory"]), time.perf_counter() - t_start)
     traj = np.asarray(res["trajectory"])
-    write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
-    # sensor timestamps where the data has them (ROS bags, TUM RGB-D), else frame numbers
-    stamps = (np.asarray(seq.timestamps[:len(traj)], np.float64) if getattr(seq, "timestamps", None) is not None
-              else np.asarray(seq.indices[:len(traj)], np.float64))
-    write_tum(os.path.join(out_dir, "trajectory_tum.txt"), stamps, traj)
     out = {"run": out_dir, "frames": len(seq), "keyframes": len(mapper.store), "loops": res["loops"],
-           **summarize(mapper.timings), **mapper.sizes()}
-    gt = np.asarray(seq.poses[:len(traj)], np.float64)  # = seq.frame(i).pose, without re-reading the points
-    if evaluate:
-        out["ate_slam"] = ate(traj, gt)
-        if res["odometry"] is not None:
-            write_kitti(os.path.join(out_dir, "odometry_kitti.txt"), res["odometry"])
-            out["ate_odometry"] = ate(res["odometry"], gt)
-    try:
-        rec = mesh_and_evaluate(mapper, icfg, out_dir, evaluate=evaluate)
-    except BaseException:
-        if hooks is not None:
-            hooks.close()
-        raise
-    finish_view(hooks, rec.get("mesh"), out_dir)
-    out.update({"mesh": rec["mesh"], "faces": rec["faces"]})
-    if "metrics" in rec:
-        out["metrics"] = rec["metrics"]
+           **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
+    rec = finish_run(mapper, icfg, out_dir, loop, evaluate=evaluate, viewer=viewer)
+    out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     if cfg.n3_config:
         out["n3"] = _n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
@@ -258,13 +252,28 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     return out
 
 
+def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarray | None, evaluate: bool) -> dict:
+    """trajectory_kitti.txt, trajectory_tum.txt (and odometry_kitti.txt); the ATE of each against the
+    sequence's poses when `evaluate`."""
+    write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
+    # sensor timestamps where the data has them (ROS bags, TUM RGB-D), else frame numbers
+    stamps = (np.asarray(seq.timestamps[:len(traj)], np.float64) if getattr(seq, "timestamps", None) is not None
+              else np.asarray(seq.indices[:len(traj)], np.float64))
+    write_tum(os.path.join(out_dir, "trajectory_tum.txt"), stamps, traj)
+    out = {}
+    gt = np.asarray(seq.poses[:len(traj)], np.float64)  # = seq.frame(i).pose, without re-reading the points
+    if evaluate:
+        out["ate_slam"] = ate(traj, gt)
+    if odometry is not None:
+        write_kitti(os.path.join(out_dir, "odometry_kitti.txt"), odometry)
+        if evaluate:
+            out["ate_odometry"] = ate(odometry, gt)
+    return out
+
+
 def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) -> dict:
     """The N3 map of the same frames with the optimised poses (written as a KITTI pose file beside a
     symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
-    from jaxmap.config import MapConfig
-    from jaxmap.n3.mapper import N3Mapper
-    from jaxmap.n3.run import finish_run
-
     d = cfg.data
     ncfg = load_config(cfg.n3_config, [f"data.path={d.path}", f"data.begin_frame={d.begin_frame}",
                                        f"data.end_frame={d.end_frame}", f"data.every_frame={d.every_frame}",
@@ -272,14 +281,13 @@ def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) ->
     os.makedirs(out_dir, exist_ok=True)
     save_config(ncfg, os.path.join(out_dir, "config.yaml"))
     mapper = N3Mapper(ncfg)
-    bar = _bar(len(seq), "n3 (optimised poses)", progress)
-    for i in range(len(seq)):
-        mapper.add_frame(seq.frame(i).points, poses[i])
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    return finish_run(mapper, ncfg, out_dir, seq)
+
+    def step(frame: Frame):
+        return mapper.add_frame(frame.points, poses[frame.position]), poses[frame.position]
+
+    loop = run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
+                      progress=Progress("n3 (optimised poses)", progress))
+    return finish_run(mapper, ncfg, out_dir, loop)
 
 
 def _jsonable(x):
@@ -288,22 +296,3 @@ def _jsonable(x):
     if isinstance(x, (np.floating, np.integer)):
         return x.item()
     raise TypeError(type(x))
-
-
-def cli_slam(args) -> int:
-    cfg = config_from_args(args, SlamConfig)
-    from jaxmap.rundir import claim
-    from jaxmap.viewer import view_options
-
-    with claim(cfg.output, "slam", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
-        out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
-    brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
-    brief["loops"] = len(out["loops"])
-    for k in ("ate_odometry", "ate_slam"):
-        if k in out:
-            brief[k + "_rmse_m"] = out[k]["rmse_m"]
-    if "metrics" in out:
-        brief["chamfer_l1_cm"] = out["metrics"]["chamfer_l1_cm"]
-        brief["f_score"] = out["metrics"]["f_score"]
-    print(json.dumps(brief))
-    return 0

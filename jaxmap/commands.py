@@ -1,0 +1,228 @@
+"""Every `jaxmap` command: one function per command, called by `jaxmap.cli.main` with the parsed
+arguments; each returns the process's exit code.
+
+Imports are made inside the commands on purpose: `jaxmap --help`, `jaxmap info` or `jaxmap synth` must
+not pay for importing jax, flax and open3d (seconds) when they do not use them.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import os
+
+from jaxmap.config import ConfigError, config_from_args, lattice_problem, load_config
+from jaxmap.errors import CheckpointError, DataError, NoCheckpointError
+from jaxmap.rundir import claim, exit_code, inspect, output_dir, output_file
+
+log = logging.getLogger("jaxmap")
+
+
+def synth(args) -> int:
+    """`jaxmap synth {city,room} --out DIR`: a synthetic sequence with exact ground truth."""
+    if args.scene == "city":
+        from jaxmap.synth.city import generate_city as gen
+    else:
+        from jaxmap.synth.room import generate_room as gen
+    kw = {"pedestrians": True} if args.pedestrians else {}
+    if args.pedestrians and args.scene != "city":
+        raise SystemExit("jaxmap synth: --pedestrians is for the city scene")
+    if args.long:
+        if args.scene != "city":
+            raise SystemExit("jaxmap synth: --long is for the city scene")
+        if args.small:
+            raise SystemExit("jaxmap synth: --long and --small are different presets; pick one")
+        kw["long"] = True
+    if args.scene == "city":
+        kw["layout"] = args.layout
+        if args.beams is not None:
+            kw["beams"] = args.beams
+        if args.traffic:
+            kw["traffic"] = args.traffic
+        if args.realistic is not None:
+            kw["realistic"] = args.realistic
+    elif args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None:
+        raise SystemExit("jaxmap synth: --layout, --beams, --traffic and --realistic are for the city scene")
+    output_dir(args.out)
+    stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
+    print(json.dumps(stats))
+    return 0
+
+
+def eval(args) -> int:  # noqa: A001 - the command's name
+    """`jaxmap eval MESH GT_DIR`: the standard protocol's metrics of a mesh."""
+    from jaxmap.metrics import evaluate_mesh_file, format_metrics
+
+    if args.json_out:
+        output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
+    m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
+                           cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
+                           n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor,
+                           ghost=not args.no_ghost)
+    print(format_metrics(m, "mesh"))
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(m, f)
+    print(json.dumps(m))
+    return 0
+
+
+def baseline(args) -> int:
+    """`jaxmap baseline tsdf --data DIR --out MESH`: the classical TSDF baseline."""
+    from jaxmap.baselines.tsdf import tsdf_from_sequence
+
+    output_file(args.out)
+    info = tsdf_from_sequence(args.data, voxel_m=args.voxel, out_mesh=args.out,
+                              max_range_m=args.max_range, mesh_res_m=args.res)
+    print(json.dumps(info))
+    return 0
+
+
+def map(args) -> int:  # noqa: A001 - the command's name
+    """`jaxmap map CONFIG [--data DIR] [--out RUN]` or `jaxmap map --resume RUN`: the N3 map of a sequence."""
+    from jaxmap.n3.run import map_sequence
+    from jaxmap.viewer import view_options
+
+    if args.resume:
+        if args.overrides or args.data or args.config or args.out:
+            raise ConfigError(f"--resume {args.resume} continues a run with its own config.yaml; drop "
+                              "CONFIG/--set/--data/--out (or start a new run with them)")
+        out = args.resume
+    else:
+        if not args.config:
+            raise ConfigError("jaxmap map needs a CONFIG (e.g. configs/city.yaml) or --resume RUN_DIR")
+        cfg = config_from_args(args)  # validated before the run directory is touched
+        out = cfg.output
+    try:
+        with claim(out, "map", resume=bool(args.resume), overwrite=args.overwrite):
+            if args.resume:
+                cfg_path = os.path.join(out, "config.yaml")
+                if not os.path.isfile(cfg_path):
+                    raise DataError(f"{cfg_path}: missing, so the run cannot be continued; start again with "
+                                    "--overwrite")
+                cfg = load_config(cfg_path)
+            summary = map_sequence(cfg, out, resume=bool(args.resume), progress=not args.no_progress,
+                                   mesh=not args.no_mesh, view=view_options(args))
+    except KeyboardInterrupt as e:
+        return exit_code(e)
+    print(json.dumps(summary))
+    return 0
+
+
+def mesh(args) -> int:
+    """`jaxmap mesh RUN [--res R] [--out PATH]`: a mesh of the newest intact checkpoint of a map run."""
+    from jaxmap.n3.mapper import N3Mapper
+    from jaxmap.n3.run import no_usable_checkpoint
+
+    run = args.run
+    if not os.path.isdir(run):
+        raise DataError(f"{run}: not a directory; pass the run directory of a jaxmap map run (--out of the run)")
+    if args.res is not None and not args.res > 0:
+        raise ConfigError(f"--res {args.res:g}: must be > 0 (metres), e.g. --res 0.1")
+    state = inspect(run)
+    if state.command not in (None, "map"):
+        raise DataError(f"{run}: holds a jaxmap {state.command} run; jaxmap mesh re-meshes jaxmap map runs")
+    try:
+        mapper = N3Mapper.load(os.path.join(run, "checkpoint"))
+    except NoCheckpointError:
+        raise CheckpointError(f"{run}: no checkpoint yet; map at least `checkpoint_every` frames first "
+                              f"(continue the run with: jaxmap map --resume {run})") from None
+    except CheckpointError as e:
+        raise no_usable_checkpoint(run, e) from None
+    res = args.res or mapper.cfg.mesh.resolution_m
+    problem = lattice_problem(res, mapper.cfg.grid.leaf_vox_size, "the run's grid.leaf_vox_size")
+    if problem:
+        raise ConfigError(f"--res {res:g} for {run}: {problem}")
+    out = output_file(args.out or os.path.join(run, f"mesh_{res:g}.ply"), "--out")
+    m = mapper.mesh(res)
+    m.export(out)
+    print(json.dumps({"mesh": out, "faces": int(len(m.faces)), "vertices": int(len(m.vertices))}))
+    return 0
+
+
+def demo(args) -> int:
+    """`jaxmap demo`: synthesize the city (once), map it with configs/city.yaml, mesh, evaluate, say where
+    it went."""
+    from jaxmap.n3.run import city_config_path, map_sequence
+    from jaxmap.synth.city import generate_city
+
+    if not os.path.isfile(os.path.join(args.data, "poses.txt")):
+        log.info("synthesizing the demo city into %s", args.data)
+        generate_city(args.data, seed=0)
+    cfg = load_config(city_config_path(), [f"data.path={args.data}", f"output={args.out}"])
+    with claim(args.out, "map", overwrite=True):  # `make demo` again replaces the last demo run
+        summary = map_sequence(cfg, args.out)
+    m = summary.get("metrics", {})
+    print(f"\nmesh:    {summary['mesh']}")
+    print(f"metrics: {os.path.join(args.out, 'metrics.json')}")
+    print(f"timing:  {os.path.join(args.out, 'timing.json')}  ({summary.get('wall_s_per_frame', float('nan')):.2f} s "
+          f"per frame wall-clock, compilation included; median {summary['median_total_s']:.2f} s)")
+    if m:
+        print(json.dumps(m))
+    return 0
+
+
+def imt(args) -> int:
+    """`jaxmap imt CONFIG [--data DIR] [--out RUN]`: the transformable latent map of a sequence."""
+    from jaxmap.config import ImtConfig
+    from jaxmap.imt.run import run_imt
+    from jaxmap.viewer import view_options
+
+    cfg = config_from_args(args, ImtConfig)
+    with claim(cfg.output, "imt", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
+        summary = run_imt(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
+    print(json.dumps(summary))
+    return 0
+
+
+def slam(args) -> int:
+    """`jaxmap slam CONFIG [--data DIR] [--out RUN]`: odometry, loop closure, pose graph, remapped map."""
+    from jaxmap.slam.run import SlamConfig, run_slam
+    from jaxmap.viewer import view_options
+
+    cfg = config_from_args(args, SlamConfig)
+    with claim(cfg.output, "slam", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
+        out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
+    brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
+    brief["loops"] = len(out["loops"])
+    for k in ("ate_odometry", "ate_slam"):
+        if k in out:
+            brief[k + "_rmse_m"] = out[k]["rmse_m"]
+    if "metrics" in out:
+        brief["chamfer_l1_cm"] = out["metrics"]["chamfer_l1_cm"]
+        brief["f_score"] = out["metrics"]["f_score"]
+    print(json.dumps(brief))
+    return 0
+
+
+def prior(args) -> int:
+    """`jaxmap prior {train,eval}`: train or evaluate the equivariant encoder/decoder prior."""
+    from jaxmap.imt import prior as prior_mod
+
+    return prior_mod.cli_train(args) if args.action == "train" else prior_mod.cli_eval(args)
+
+
+def info(args) -> int:
+    """`jaxmap info PATH`: what a sequence is (kind, frames, a bag's topics)."""
+    from jaxmap.info import format_info, sequence_info
+
+    print(format_info(sequence_info(args.path, kind=args.kind, topic=args.topic)))
+    return 0
+
+
+def view(args) -> int:
+    """`jaxmap view RUN`: a finished run in the browser viewer."""
+    from jaxmap.viewer import view_run
+
+    return view_run(args.run, port=args.port, wait=not args.no_wait)
+
+
+BENCH_DATA = {"slam": "data/room_noisy", "imt": "data/room_bench", "n3": "data/city_bench"}
+
+
+def bench(args) -> int:
+    """`jaxmap bench {n3,imt,slam}`: benchmarks (speed, memory, quality against baselines)."""
+    import importlib
+
+    args.out = args.out or f"runs/bench_{args.suite}"
+    args.data = args.data or BENCH_DATA[args.suite]
+    return importlib.import_module(f"jaxmap.bench.{args.suite}").main(args)

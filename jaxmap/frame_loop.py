@@ -1,0 +1,352 @@
+"""The one frame loop and the one finisher of every run: `jaxmap map`, `imt`, `slam` and the benches.
+
+    frames = Prefetcher(seq, start, len(seq), load)          # read (and prepare) ahead in a thread
+    loop = run_frames(frames, step, total=len(seq), ...)     # progress, viewer, checkpoints, Ctrl-C, wall
+    summary = finish_run(mapper, cfg, out_dir, loop)         # mesh.ply, metrics.json, timing.json
+
+A run is a `Mapper` (N3's `N3Mapper`, the transformable map's `ImtMapper`) fed frame by frame by a
+`step`: a function of one `Frame` that maps it and returns its record (timings, sizes) and the pose it
+was mapped at. The step is all that differs between runs (a mapper's `add_frame`, or a SLAM front end
+that estimates the pose first and closes loops); reading ahead, the progress bar, the live viewer,
+checkpoints every N frames and on Ctrl-C / SIGTERM, and the run's wall-clock time live here once.
+"""
+from __future__ import annotations
+
+import concurrent.futures
+import dataclasses
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from typing import Any, Callable, Iterable, Protocol
+
+import numpy as np
+
+from jaxmap.hostmem import peak_rss_mb
+from jaxmap.rundir import interrupt_requests
+
+log = logging.getLogger("jaxmap")
+
+
+class Mapper(Protocol):
+    """What the loop and the finisher need of a map (both N3Mapper and ImtMapper are one)."""
+
+    cfg: Any                 # the run's root config (data, preprocess, mesh, eval sections)
+    timings: list[dict]      # one record per added frame (its `*_s` timings, sizes)
+
+    def add_frame(self, points_s: np.ndarray, pose: np.ndarray, **kw) -> dict:
+        """Map one scan: points [N, 3] sensor frame, pose [4, 4] T_world_sensor; returns its record."""
+
+    def mesh(self):
+        """trimesh.Trimesh of the zero level set at the config's mesh resolution, world frame."""
+
+    def sdf(self, points_w: np.ndarray):
+        """Signed distance at world points [M, 3]."""
+
+    def save(self, path: str, background: bool = False) -> None:
+        """A checkpoint of the whole map in directory `path`."""
+
+    def timing_summary(self) -> dict:
+        """Medians of the per-frame records and the map's sizes, for timing.json and the summary."""
+
+    def live_mesh(self) -> dict:
+        """`attach_viewer` arguments (mesh_fn, snapshot_fn) that mesh the map in a background thread."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One frame as the loop hands it to a step.
+
+    position: 0-based position in the run's frame selection; index: the sequence's own frame number;
+    points: [N, 3] float32 sensor frame (preprocessed when `normals` is set); pose: [4, 4] float64
+    T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame."""
+
+    position: int
+    index: int
+    points: np.ndarray
+    pose: np.ndarray | None
+    normals: np.ndarray | None = None
+
+
+def read_frame(seq, position: int) -> Frame:
+    """`Prefetcher` loader of the sequence's frame as it is on disk."""
+    fr = seq.frame(position)
+    return Frame(position, int(fr.index), fr.points, fr.pose)
+
+
+class Prefetcher:
+    """Iterate `load(seq, i)` for i in [start, stop), computed ahead by `workers` threads (default: one
+    per two CPU cores, at least one), in order. On a 2-core laptop one thread overlaps the device's
+    work (numpy, scipy's k-d tree and file reads release the GIL); on a GPU machine the device maps a
+    city frame in ~20 ms, and several frames are prepared at once to keep up. Errors are re-raised in
+    the consumer."""
+
+    def __init__(self, seq, start: int, stop: int, load: Callable[[Any, int], Any] = read_frame,
+                 workers: int | None = None):
+        # Only sequences that read each frame from its own file are read from several threads
+        # (a ROS bag reader is one open file).
+        parallel = getattr(seq, "thread_safe_frames", False)
+        self._workers = workers or (max(1, (os.cpu_count() or 2) // 2) if parallel else 1)
+        self._pool = concurrent.futures.ThreadPoolExecutor(self._workers, thread_name_prefix="jaxmap-prefetch")
+        self._depth = self._workers + 1
+        self._next, self._stop = start, stop
+        self._futures: list = []
+        self._seq, self._load = seq, load
+
+    def _fill(self):
+        while self._next < self._stop and len(self._futures) < self._depth:
+            self._futures.append(self._pool.submit(self._load, self._seq, self._next))
+            self._next += 1
+
+    def __iter__(self):
+        self._fill()
+        while self._futures:
+            item = self._futures.pop(0).result()
+            self._fill()
+            yield item
+
+    def close(self):
+        for f in self._futures:
+            f.cancel()
+        self._futures = []
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
+
+@dataclasses.dataclass(frozen=True)
+class Checkpoints:
+    """How a run saves its map: every `every` frames in the background (0: never), at the end, and on
+    Ctrl-C / SIGTERM. `save(background)` writes one; `busy()` says a background save still runs
+    (the next frame tries again); `wait()` waits for it; `resume` is the command that continues the
+    run ("" where the command has no --resume)."""
+
+    save: Callable[[bool], None]
+    path: str
+    every: int = 0
+    busy: Callable[[], bool] = lambda: False
+    wait: Callable[[], None] = lambda: None
+    resume: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class Progress:
+    """The progress bar: `desc`, a `postfix(record) -> dict` of short strings, and `first` appended to
+    the description while the first frame runs (it compiles the frame program: say so)."""
+
+    desc: str = "mapping"
+    enabled: bool = True
+    postfix: Callable[[dict], dict] | None = None
+    first: str = ""
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopResult:
+    frames_run: int     # frames mapped by this loop (after a resume: the new ones)
+    wall_s: float       # wall-clock from `t_start`: compilation, checkpoints and the final save included
+
+
+def run_frames(frames: Iterable[Frame], step: Callable[[Frame], tuple[dict, np.ndarray | None]], *, total: int,
+               start: int = 0, progress: Progress = Progress(), viewer=None, checkpoints: Checkpoints | None = None,
+               t_start: float | None = None) -> LoopResult:
+    """Run `step` on every frame of `frames` (positions start .. total - 1) and return what it cost.
+
+    step(frame) -> (record, pose): `record` (timings, sizes; shown by the bar and the viewer), `pose`
+    [4, 4] the frame was mapped at (None: not shown by the viewer, e.g. a frame that is not a keyframe).
+    viewer: `jaxmap.viewer.ViewerHooks` or None. The first SIGINT / SIGTERM stops the loop between two
+    frames (never inside one: a frame's new state is swapped in at its end), saves a checkpoint and
+    re-raises (`jaxmap.rundir.Interrupted`); a second Ctrl-C stops at once, without saving. `frames`
+    is closed (its `close()`, a `Prefetcher`'s threads) however the loop ends."""
+    t_start = time.perf_counter() if t_start is None else t_start
+    bar = _bar(progress, total, start)
+    since_save, done = 0, 0
+    try:
+        with interrupt_requests() as stop:
+            try:
+                for frame in frames:
+                    record, pose = _one_frame(step, frame, bar, progress, first=done == 0)
+                    done += 1
+                    since_save += 1
+                    if viewer is not None and pose is not None:
+                        from jaxmap.viewer import to_world
+
+                        viewer.on_frame(frame.index, to_world(frame.points, pose, viewer.viewer.max_points), pose,
+                                        record)
+                    # Written while the next frames map; if the last one is still being written (a GPU maps
+                    # 10 frames faster than a map is written), the next frame tries again.
+                    if (checkpoints is not None and checkpoints.every > 0 and since_save >= checkpoints.every
+                            and frame.position + 1 < total and not checkpoints.busy()):
+                        checkpoints.save(True)
+                        since_save = 0
+                    stop.check()  # Ctrl-C or SIGTERM during the frame: stop here, between frames
+            except KeyboardInterrupt as e:
+                _close(frames, bar)
+                _interrupted(e, stop.forced, checkpoints, start + done)
+                raise
+    except BaseException:
+        _close(frames, bar)
+        if viewer is not None:
+            viewer.close()
+        raise
+    _close(frames, bar)
+    if checkpoints is not None:
+        checkpoints.save(False)
+    return LoopResult(done, time.perf_counter() - t_start)
+
+
+def _one_frame(step, frame: Frame, bar, progress: Progress, first: bool):
+    if bar is not None and first and progress.first:
+        bar.set_description_str(f"{progress.desc} ({progress.first})")
+    record, pose = step(frame)
+    if bar is not None:
+        if first and progress.first:
+            bar.set_description_str(progress.desc)
+        if progress.postfix is not None:
+            bar.set_postfix(**progress.postfix(record))
+        bar.update(1)
+    return record, pose
+
+
+def _bar(progress: Progress, total: int, start: int):
+    if not progress.enabled:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=start, unit="frame", desc=progress.desc, file=sys.stderr)
+
+
+def _close(frames, bar) -> None:
+    if hasattr(frames, "close"):
+        frames.close()
+    if bar is not None:
+        bar.close()
+
+
+def _interrupted(e: KeyboardInterrupt, forced: bool, checkpoints: Checkpoints | None, frames: int) -> None:
+    """Save what the stopped run mapped (unless Ctrl-C came twice) and say how to go on."""
+    what = "terminated (SIGTERM)" if getattr(e, "signum", None) == signal.SIGTERM else "interrupted"
+    if checkpoints is None:
+        return
+    go_on = f"; continue with: {checkpoints.resume}" if checkpoints.resume else ""
+    if forced:
+        checkpoints.wait()
+        print(f"\n{what} twice: stopped without saving" + (f"; continue from the last checkpoint with: "
+                                                           f"{checkpoints.resume}" if checkpoints.resume else ""),
+              file=sys.stderr)
+        return
+    checkpoints.save(False)
+    print(f"\n{what}: checkpoint of {frames} frames saved in {checkpoints.path}{go_on}", file=sys.stderr)
+
+
+# ------------------------------------------------------------------------------------------------
+# the finisher: mesh, metrics, timing
+# ------------------------------------------------------------------------------------------------
+
+
+def finish_run(mapper: Mapper, cfg, out_dir: str, loop: LoopResult | None = None, *, evaluate: bool = True,
+               mesh: bool = True, extra: dict | None = None, viewer=None) -> dict:
+    """Mesh (`out_dir/mesh.ply`), metrics against the sequence's ground truth (`metrics.json`, when it
+    has gt_points.ply) and timings (`timing.json`) of a mapped run; returns the run's summary.
+    mesh=False: timings only. The viewer, if any, shows the final mesh and is closed."""
+    out = (mesh_and_metrics(mapper, cfg, out_dir, evaluate=evaluate) if mesh
+           else {"mesh": None, "faces": 0, "mesh_s": 0.0})
+    summ = dict(mapper.timing_summary())
+    if loop is not None and loop.frames_run:
+        summ.update({"wall_s": loop.wall_s, "wall_s_per_frame": loop.wall_s / loop.frames_run,
+                     "frames_run": loop.frames_run})
+    summ.update(extra or {})
+    with open(os.path.join(out_dir, "timing.json"), "w") as f:
+        json.dump({"frames": mapper.timings, "summary": summ, "mesh_s": out["mesh_s"]}, f)
+    if "metrics" in out:
+        with open(os.path.join(out_dir, "metrics.json"), "w") as f:
+            json.dump(out["metrics"], f)
+    summary = {"run": out_dir, **out, **summ, "peak_rss_mb": peak_rss_mb()}
+    if viewer is not None:
+        close_viewer(viewer, out["mesh"], out_dir)
+    return summary
+
+
+def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", evaluate: bool = True,
+                     floor: bool = True) -> dict:
+    """Write the map's mesh to `out_dir/name`; its metrics against the ground truth of the run's data
+    when `evaluate` and the data has gt_points.ply (with the protocol's floor unless floor=False).
+    Returns {"mesh": path, "faces", "mesh_s", "metrics"?}."""
+    t0 = time.perf_counter()
+    m = mapper.mesh()
+    path = os.path.join(out_dir, name)
+    m.export(path)
+    out = {"mesh": path, "faces": int(len(m.faces)), "mesh_s": time.perf_counter() - t0}
+    if not (evaluate and has_ground_truth(cfg.data.path)):
+        return out
+    if out["faces"] == 0:
+        log.warning("the mesh %s is empty (too few frames or iterations?): no metrics", path)
+        return out
+    out["metrics"] = evaluate_run_mesh(path, cfg, floor=floor)
+    return out
+
+
+def open_run_sequence(cfg):
+    """The frames a run's config selects (`cfg.data`: path, kind, begin / end / every frame, topic)."""
+    from jaxmap.io import open_sequence
+
+    d = cfg.data
+    return open_sequence(d.path, kind=d.kind, begin_frame=d.begin_frame, end_frame=d.end_frame,
+                         every_frame=d.every_frame, topic=d.topic)
+
+
+def has_ground_truth(data_path: str) -> bool:
+    """The data has gt_points.ply: in its directory, or beside its file (a ROS bag, a LAS file)."""
+    here = data_path if os.path.isdir(data_path) else os.path.dirname(os.path.abspath(data_path))
+    return os.path.isfile(os.path.join(here, "gt_points.ply"))
+
+
+def evaluate_run_mesh(mesh_path: str, cfg, floor: bool = True) -> dict:
+    """The standard protocol's metrics of a mesh against the ground truth of the run's data, culled to
+    exactly the frames and range the run mapped (`jaxmap.metrics.evaluate_mesh_file`)."""
+    from jaxmap.metrics import evaluate_mesh_file
+
+    d, p, e = cfg.data, cfg.preprocess, cfg.eval
+    return evaluate_mesh_file(mesh_path, d.path, threshold_m=e.threshold_m, cull_distance_m=e.cull_distance_m,
+                              eval_radius_m=e.eval_radius_m, n_samples=e.n_samples, begin_frame=d.begin_frame,
+                              end_frame=d.end_frame, every_frame=d.every_frame, min_range_m=p.min_range_m,
+                              max_range_m=p.max_range_m, floor=floor)
+
+
+def medians(timings: list[dict], keys: Iterable[str], skip_first: int = 1) -> dict:
+    """`median_<key>` over the records after the first `skip_first` (compiling) frames, and the count of
+    frames that had no point to map (`empty_frames`: empty scans, or all cropped away)."""
+    rows = timings[skip_first:] if len(timings) > skip_first else timings
+    out = {}
+    for k in keys:
+        vals = [r[k] for r in rows if k in r]
+        out[f"median_{k}"] = float(np.median(vals)) if vals else float("nan")
+    out["empty_frames"] = int(sum(1 for r in timings if r.get("points", 1) == 0))
+    return out
+
+
+# ------------------------------------------------------------------------------------------------
+# the live viewer of a run (`--view`)
+# ------------------------------------------------------------------------------------------------
+
+
+def open_viewer(view: dict | None, mapper: Mapper):
+    """ViewerHooks for `view` = {"port": int, "mesh_every": int} (None: no viewer) that mesh `mapper`
+    in a background thread (`mapper.live_mesh()`: a preview at a coarser resolution)."""
+    if not view:
+        return None
+    from jaxmap.viewer import attach_viewer
+
+    return attach_viewer(port=int(view.get("port", 8080)), mesh_every=int(view.get("mesh_every", 10)),
+                         **mapper.live_mesh())
+
+
+def close_viewer(hooks, mesh_path: str | None, out_dir: str) -> None:
+    """Show the final mesh, then stop the viewer (`jaxmap view RUN` opens the run again)."""
+    mesh = None
+    if mesh_path and os.path.isfile(mesh_path):
+        import trimesh
+
+        mesh = trimesh.load(mesh_path, process=False, force="mesh")
+    hooks.finish(mesh)
+    hooks.close()
+    log.info("viewer closed; `jaxmap view %s` shows the finished run", out_dir)
