@@ -24,3 +24,7 @@ class CheckpointError(DataError):
 
 class NoCheckpointError(CheckpointError):
     """A checkpoint directory holds no checkpoint at all (the run never saved one)."""
+
+
+class ConfigError(JaxmapError, ValueError):
+    """A config file or override is wrong; the message says where and how to fix it."""
