@@ -1,12 +1,14 @@
 """Markdown reference of every config key, generated from the config dataclasses.
 
-    python -m jaxmap.config_reference                    # print the reference
-    python -m jaxmap.config_reference --check README.md  # exit 1 if README's block is out of date
-    python -m jaxmap.config_reference --write README.md  # rewrite README's block
+    python -m jaxmap.config_reference           # print the reference
+    python -m jaxmap.config_reference --check   # exit 1 if docs/configuration.md's block is out of date
+    python -m jaxmap.config_reference --write   # rewrite docs/configuration.md's block
+    python -m jaxmap.config_reference --check PAGE.md   # ... or another page's
 
-The README holds the reference between the lines `<!-- config-reference:begin -->` and
-`<!-- config-reference:end -->`; `tests/test_config_reference.py` fails when that block differs from
-:func:`config_reference`, so the documentation cannot drift from the dataclasses.
+The documentation page :data:`PAGE` (`docs/configuration.md`) holds the reference between the lines
+`<!-- config-reference:begin -->` and `<!-- config-reference:end -->`; `tests/test_config_reference.py`
+fails when that block differs from :func:`config_reference` or when a key of a config root is missing
+from it (:func:`undocumented_keys`), so the documentation cannot drift from the dataclasses.
 
 For each config root in :data:`ROOTS` there is one table per section (`data`, `train`, ...,
 `model.encoder`, and the root's own keys under "top level"): dotted key, type, default (the
@@ -46,6 +48,7 @@ from jaxmap.slam.run import SlamConfig
 BEGIN = "<!-- config-reference:begin -->"
 END = "<!-- config-reference:end -->"
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAGE = os.path.join("docs", "configuration.md")  # the page that holds the reference, relative to REPO
 
 # One line per config root: (title, root dataclass[, shipped YAML for the comment fallback]).
 # Without the third element, the first `configs/*.yaml` named in the title is used.
@@ -242,9 +245,9 @@ def root_tables(entry: tuple) -> str:
 
 
 def config_reference(roots: list[tuple] | None = None) -> str:
-    """The Markdown reference of every root (the text between README's markers, newline-terminated)."""
+    """The Markdown reference of every root (the text between the page's markers, newline-terminated)."""
     roots = ROOTS if roots is None else roots
-    head = ("<!-- generated from the config dataclasses by `python -m jaxmap.config_reference --write README.md`; "
+    head = ("<!-- generated from the config dataclasses by `python -m jaxmap.config_reference --write`; "
             "do not edit by hand -->\n\n"
             "Defaults are the dataclass defaults, what a key left out of a YAML file gets; the shipped YAML "
             "files spell out every key and may set other values.\n")
@@ -263,8 +266,13 @@ def missing_descriptions(roots: list[tuple] | None = None) -> list[str]:
 
 
 # ---------------------------------------------------------------------------------------------
-# The README block
+# The page's block
 # ---------------------------------------------------------------------------------------------
+
+
+def page_path(path: str | None = None) -> str:
+    """`path`, or the reference page :data:`PAGE` of this checkout."""
+    return path if path else os.path.join(REPO, PAGE)
 
 
 def _split(text: str, path: str) -> tuple[str, str, str]:
@@ -277,23 +285,56 @@ def _split(text: str, path: str) -> tuple[str, str, str]:
     return text[:start], text[start:e], text[e:]
 
 
-def readme_block(path: str) -> str:
+def page_block(path: str | None = None) -> str:
+    """The text between the markers of `path` (default: :data:`PAGE`)."""
+    path = page_path(path)
     with open(path) as f:
         return _split(f.read(), path)[1]
 
 
-def check(path: str, roots: list[tuple] | None = None) -> list[str]:
-    """Unified diff lines between README's block and the generated reference ([] = up to date)."""
+_ROW_KEY = re.compile(r"^\|\s*`([^`]+)`\s*\|")
+
+
+def documented_keys(path: str | None = None) -> dict[str, set[str]]:
+    """{root title: dotted keys that have a table row under that root's `### title` heading} of the block."""
+    out: dict[str, set[str]] = {}
+    title = None
+    for line in page_block(path).splitlines():
+        if line.startswith("### "):
+            title = line[4:].strip()
+            out.setdefault(title, set())
+        elif title is not None:
+            m = _ROW_KEY.match(line)
+            if m:
+                out[title].add(m.group(1))
+    return out
+
+
+def undocumented_keys(path: str | None = None, roots: list[tuple] | None = None) -> list[str]:
+    """Every key of every root (as "<title>: <dotted key>") that has no row under its root in the page."""
+    have = documented_keys(path)
+    missing = []
+    for entry in ROOTS if roots is None else roots:
+        title, root = entry[0], entry[1]
+        keys = have.get(title, set())
+        missing += [f"{title}: {leaf.key}" for leaf in iter_leaves(root) if leaf.key not in keys]
+    return missing
+
+
+def check(path: str | None = None, roots: list[tuple] | None = None) -> list[str]:
+    """Unified diff lines between the page's block and the generated reference ([] = up to date)."""
+    path = page_path(path)
     want = config_reference(roots)
-    have = readme_block(path)
+    have = page_block(path)
     if have == want:
         return []
     return list(difflib.unified_diff(have.splitlines(), want.splitlines(), f"{path} (block)",
                                      "config_reference()", lineterm=""))
 
 
-def write(path: str, roots: list[tuple] | None = None) -> bool:
-    """Rewrite README's block; returns whether the file changed."""
+def write(path: str | None = None, roots: list[tuple] | None = None) -> bool:
+    """Rewrite the page's block; returns whether the file changed."""
+    path = page_path(path)
     with open(path) as f:
         text = f.read()
     before, block, after = _split(text, path)
@@ -305,23 +346,36 @@ def write(path: str, roots: list[tuple] | None = None) -> bool:
     return True
 
 
+def _resolve(arg: str) -> str:
+    """A page named on the command line: as given when it exists from here, else relative to the repository."""
+    return arg if os.path.isabs(arg) or os.path.exists(arg) else os.path.join(REPO, arg)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m jaxmap.config_reference", description=__doc__.splitlines()[0])
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--check", metavar="README", help="exit 1 if the README's block is out of date")
-    g.add_argument("--write", metavar="README", help="rewrite the README's block")
+    g.add_argument("--check", metavar="PAGE", nargs="?", const=PAGE,
+                   help=f"exit 1 if the page's block is out of date or misses a key (default page: {PAGE})")
+    g.add_argument("--write", metavar="PAGE", nargs="?", const=PAGE,
+                   help=f"rewrite the page's block (default page: {PAGE})")
     args = p.parse_args(argv)
     if args.check:
-        diff = check(args.check)
-        if diff:
+        path = _resolve(args.check)
+        diff, missing = check(path), undocumented_keys(path)
+        if diff or missing:
             print("\n".join(diff))
+            if missing:
+                print(f"\n{args.check}: {len(missing)} config keys missing: " + ", ".join(missing[:20]),
+                      file=sys.stderr)
+            fix = "" if args.check == PAGE else f" {args.check}"
             print(f"\n{args.check}: the config reference is out of date; run "
-                  f"`python -m jaxmap.config_reference --write {args.check}`", file=sys.stderr)
+                  f"`python -m jaxmap.config_reference --write{fix}`", file=sys.stderr)
             return 1
         print(f"{args.check}: config reference up to date")
         return 0
     if args.write:
-        changed = write(args.write)
+        path = _resolve(args.write)
+        changed = write(path)
         print(f"{args.write}: {'config reference rewritten' if changed else 'config reference already up to date'}")
         return 0
     sys.stdout.write(config_reference())

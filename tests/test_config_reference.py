@@ -1,4 +1,5 @@
-"""The README's config reference is generated from the config dataclasses and cannot drift from them."""
+"""The config reference (docs/configuration.md) is generated from the config dataclasses and cannot drift from
+them: every key of every config root has a row there, and the page's block is what the generator writes."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,19 +9,67 @@ from dataclasses import dataclass, field
 import pytest
 
 from jaxmap import config_reference as cr
-from jaxmap.config import MapConfig, TrainConfig
+from jaxmap.config import ImtConfig, MapConfig, TrainConfig
+from jaxmap.imt.prior import PriorConfig
+from jaxmap.slam.run import SlamConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+PAGE = os.path.join(REPO, "docs", "configuration.md")
 README = os.path.join(REPO, "README.md")
-FIX = "python -m jaxmap.config_reference --write README.md"
+FIX = "python -m jaxmap.config_reference --write"
 
 
-def test_readme_block_is_the_generated_reference():
-    have = cr.readme_block(README)
-    diff = cr.check(README)
+def test_the_roots_are_every_config_root():
+    assert [entry[1] for entry in cr.ROOTS] == [MapConfig, ImtConfig, SlamConfig, PriorConfig]
+    assert os.path.join(REPO, cr.PAGE) == PAGE
+
+
+def test_every_key_of_every_root_has_a_row_on_the_page():
+    """Read from the page itself, not from the generator: a key (of any root or nested section) without a
+    row under its root's heading in docs/configuration.md fails here, whatever the generator says."""
+    missing = cr.undocumented_keys(PAGE)
+    assert missing == [], (
+        f"{len(missing)} config keys have no row in docs/configuration.md: {missing[:20]}; run `{FIX}` and "
+        "commit docs/configuration.md")
+    documented = cr.documented_keys(PAGE)
+    for entry in cr.ROOTS:
+        keys = [leaf.key for leaf in cr.iter_leaves(entry[1])]
+        assert len(keys) > 5 and set(keys) <= documented[entry[0]], entry[0]
+    # nested sections are there too (SlamConfig.frontend.odometry, PriorConfig.model.encoder)
+    assert "frontend.odometry.method" in documented[cr.ROOTS[2][0]]
+    assert any(k.startswith("model.encoder.") for k in documented[cr.ROOTS[3][0]])
+
+
+def test_page_block_is_the_generated_reference():
+    have = cr.page_block(PAGE)
+    diff = cr.check(PAGE)
     assert have == cr.config_reference(), (
-        "README.md's config reference (between the config-reference markers) is out of date with the "
-        f"config dataclasses; run `{FIX}` and commit README.md.\n" + "\n".join(diff[:60]))
+        "docs/configuration.md's config reference (between the config-reference markers) is out of date with "
+        f"the config dataclasses; run `{FIX}` and commit docs/configuration.md.\n" + "\n".join(diff[:60]))
+    assert cr.check() == [] and cr.page_block() == have  # the default page is this one
+
+
+def test_the_reference_lives_in_docs_not_in_the_readme():
+    with open(README) as f:
+        readme = f.read()
+    assert cr.BEGIN not in readme and "| `train.iters` |" not in readme
+    assert "docs/configuration.md" in readme
+
+
+def test_a_missing_key_fails_the_check(tmp_path, capsys):
+    """Delete one key's row from a page: the key is reported missing and --check fails."""
+    text = f"# Configuration\n\nprose\n\n{cr.BEGIN}\n{cr.config_reference()}{cr.END}\n"
+    row = next(line for line in text.splitlines() if line.startswith("| `frontend.loops."))
+    key = row.split("`")[1]
+    page = tmp_path / "configuration.md"
+    page.write_text(text.replace(row + "\n", "", 1))
+    assert cr.undocumented_keys(str(page)) == [f"{cr.ROOTS[2][0]}: {key}"]
+    capsys.readouterr()
+    assert cr.main(["--check", str(page)]) == 1
+    err = capsys.readouterr().err
+    assert key in err and f"{FIX} {page}" in err
+    assert cr.main(["--write", str(page)]) == 0 and cr.undocumented_keys(str(page)) == []
+    assert page.read_text() == text
 
 
 def test_every_leaf_field_of_every_root_is_documented():
@@ -76,7 +125,7 @@ def test_a_changed_default_fails_the_check(tmp_path, monkeypatch, capsys):
                        "+| `train.iters` | int | `51` | K iterations per frame |"], diff
     capsys.readouterr()
     assert cr.main(["--check", str(readme)]) == 1
-    assert FIX.replace("README.md", str(readme)) in capsys.readouterr().err
+    assert f"{FIX} {readme}" in capsys.readouterr().err
     # --write repairs the block and leaves the rest of the file alone
     assert cr.main(["--write", str(readme)]) == 0
     text = readme.read_text()
