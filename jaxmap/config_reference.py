@@ -237,7 +237,8 @@ def root_tables(entry: tuple) -> str:
         text, _ = describe(leaf, notes)
         row = f"| `{leaf.key}` | {_type_name(leaf.type)} | {_default(leaf.default)} | {_cell(text)} |"
         sections.setdefault(leaf.section, []).append(row)
-    out = [f"### {title}", "", f"Root: `{root.__module__}.{root.__qualname__}`.", ""]
+    module = "jaxmap.config" if root.__module__.startswith("jaxmap.config.") else root.__module__  # the public path
+    out = [f"### {title}", "", f"Root: `{module}.{root.__qualname__}`.", ""]
     for section, rows in sections.items():
         out += [f"**{section or 'top level'}**", "", "| key | type | default | description |",
                 "|---|---|---|---|", *rows, ""]
