@@ -23,9 +23,14 @@ import time
 from typing import Any, Callable, Iterable, Protocol
 
 import numpy as np
+import trimesh
+from tqdm import tqdm
 
 from jaxmap.hostmem import peak_rss_mb
+from jaxmap.io import open_sequence
+from jaxmap.metrics import evaluate_mesh_file
 from jaxmap.rundir import interrupt_requests
+from jaxmap.viewer import attach_viewer, to_world
 
 log = logging.getLogger("jaxmap")
 
@@ -168,8 +173,6 @@ def run_frames(frames: Iterable[Frame], step: Callable[[Frame], tuple[dict, np.n
                     done += 1
                     since_save += 1
                     if viewer is not None and pose is not None:
-                        from jaxmap.viewer import to_world
-
                         viewer.on_frame(frame.index, to_world(frame.points, pose, viewer.viewer.max_points), pose,
                                         record)
                     # Written while the next frames map; if the last one is still being written (a GPU maps
@@ -210,8 +213,6 @@ def _one_frame(step, frame: Frame, bar, progress: Progress, first: bool):
 def _bar(progress: Progress, total: int, start: int):
     if not progress.enabled:
         return None
-    from tqdm import tqdm
-
     return tqdm(total=total, initial=start, unit="frame", desc=progress.desc, file=sys.stderr)
 
 
@@ -287,8 +288,6 @@ def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", 
 
 def open_run_sequence(cfg):
     """The frames a run's config selects (`cfg.data`: path, kind, begin / end / every frame, topic)."""
-    from jaxmap.io import open_sequence
-
     d = cfg.data
     return open_sequence(d.path, kind=d.kind, begin_frame=d.begin_frame, end_frame=d.end_frame,
                          every_frame=d.every_frame, topic=d.topic)
@@ -303,8 +302,6 @@ def has_ground_truth(data_path: str) -> bool:
 def evaluate_run_mesh(mesh_path: str, cfg, floor: bool = True) -> dict:
     """The standard protocol's metrics of a mesh against the ground truth of the run's data, culled to
     exactly the frames and range the run mapped (`jaxmap.metrics.evaluate_mesh_file`)."""
-    from jaxmap.metrics import evaluate_mesh_file
-
     d, p, e = cfg.data, cfg.preprocess, cfg.eval
     return evaluate_mesh_file(mesh_path, d.path, threshold_m=e.threshold_m, cull_distance_m=e.cull_distance_m,
                               eval_radius_m=e.eval_radius_m, n_samples=e.n_samples, begin_frame=d.begin_frame,
@@ -334,8 +331,6 @@ def open_viewer(view: dict | None, mapper: Mapper):
     in a background thread (`mapper.live_mesh()`: a preview at a coarser resolution)."""
     if not view:
         return None
-    from jaxmap.viewer import attach_viewer
-
     return attach_viewer(port=int(view.get("port", 8080)), mesh_every=int(view.get("mesh_every", 10)),
                          **mapper.live_mesh())
 
@@ -344,8 +339,6 @@ def close_viewer(hooks, mesh_path: str | None, out_dir: str) -> None:
     """Show the final mesh, then stop the viewer (`jaxmap view RUN` opens the run again)."""
     mesh = None
     if mesh_path and os.path.isfile(mesh_path):
-        import trimesh
-
         mesh = trimesh.load(mesh_path, process=False, force="mesh")
     hooks.finish(mesh)
     hooks.close()

@@ -26,6 +26,17 @@ def _mb(n: float) -> float:
     return float(n) / 2**20
 
 
+def state_by_field(state) -> dict:
+    """MB of the map's buffers per top-level field of the state."""
+    import jax
+
+    out = {}
+    for path, x in jax.tree_util.tree_leaves_with_path(state):
+        name = jax.tree_util.keystr(path).lstrip(".").split(".")[0].split("[")[0]
+        out[name] = out.get(name, 0.0) + _mb(x.size * x.dtype.itemsize)
+    return out
+
+
 def measure(data: str, frames: int, overrides: list[str]) -> dict:
     """The child: map `frames` frames of `data` and record where the memory is (MB)."""
     from jaxmap import hostmem
@@ -49,11 +60,7 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     m = N3Mapper(cfg, first_scan=(first.points, first.pose))   # as `jaxmap map`: compile, then allocate
     out["rss_peak_compile"] = hostmem.peak_rss_mb()
     out["rss_state"] = hostmem.rss_mb()
-    state = {}
-    for path, x in jax.tree_util.tree_leaves_with_path(m.state):
-        name = jax.tree_util.keystr(path).lstrip(".").split(".")[0].split("[")[0]
-        state[name] = state.get(name, 0.0) + _mb(x.size * x.dtype.itemsize)
-    out["state"] = state
+    out["state"] = state_by_field(m.state)
     rss = []
 
     def step(frame: Frame):

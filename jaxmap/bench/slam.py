@@ -30,19 +30,16 @@ import numpy as np
 from jaxmap.bench import print_map_table
 
 
-def main(args) -> int:
+def _bench_config(args, data: str, out: str):
+    """The SlamConfig of the bench's scene (made if missing): LiDAR (KITTI layout) -> configs/city_slam.yaml,
+    depth images -> configs/room_slam.yaml."""
     from jaxmap.bench import base_overrides
     from jaxmap.config import load_config, shipped_config_path
-    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
-    from jaxmap.imt.run import build_map
-    from jaxmap.slam.run import SlamConfig, run_slam
+    from jaxmap.io import detect_kind
+    from jaxmap.slam.run import SlamConfig
+    from jaxmap.synth.city import generate_city
     from jaxmap.synth.room import generate_room
 
-    from jaxmap.io import detect_kind
-    from jaxmap.synth.city import generate_city
-
-    data, out = args.data, args.out
-    os.makedirs(out, exist_ok=True)
     city = "city" in os.path.basename(os.path.normpath(data))
     if not os.path.isfile(os.path.join(data, "poses.txt")):
         if city:
@@ -51,9 +48,21 @@ def main(args) -> int:
         else:
             print(f"[bench] synthesizing the room with 5 mm depth noise into {data}")
             generate_room(data, seed=0, noise_m=0.005)
-    # LiDAR (KITTI layout) -> configs/city_slam.yaml, depth images -> configs/room_slam.yaml
     config = shipped_config_path("city_slam.yaml" if detect_kind(data) == "kitti" else "room_slam.yaml")
-    cfg = load_config(config, base_overrides(args, data, os.path.join(out, "slam")), schema=SlamConfig)
+    return load_config(config, base_overrides(args, data, os.path.join(out, "slam")), schema=SlamConfig)
+
+
+def _write(out: str, name: str, res: dict) -> None:
+    with open(os.path.join(out, name), "w") as f:
+        json.dump(res, f, indent=1, default=lambda x: x.tolist() if hasattr(x, "tolist") else str(x))
+
+
+def main(args) -> int:
+    from jaxmap.frame_loop import open_run_sequence
+
+    data, out = args.data, args.out
+    os.makedirs(out, exist_ok=True)
+    cfg = _bench_config(args, data, out)
     parts = {"odometry", "slam", "long", "drift"}
     only = {v.strip() for v in args.only.split(",")} if getattr(args, "only", None) else parts
     unknown = only - parts
@@ -67,8 +76,7 @@ def main(args) -> int:
         if "drift" in only:
             kinect["drift"] = run_on(path, 6, os.path.join(out, "drift"), args, compare=True)
         _print_kinect(kinect)
-        with open(os.path.join(out, "bench_kinect.json"), "w") as f:
-            json.dump(kinect, f, indent=1, default=lambda x: x.tolist() if hasattr(x, "tolist") else str(x))
+        _write(out, "bench_kinect.json", kinect)
         only -= {"long", "drift"}
         if not only:
             return 0
@@ -77,30 +85,35 @@ def main(args) -> int:
         res_odo = compare_odometry(cfg, open_run_sequence(cfg.imt()))
         _print_odometry(res_odo)
         if "slam" not in only:
-            with open(os.path.join(out, "bench.json"), "w") as f:
-                json.dump({"odometry": res_odo}, f, indent=1)
+            _write(out, "bench.json", {"odometry": res_odo})
             print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
             return 0
-    slam = run_slam(cfg, cfg.output)
-    icfg = cfg.imt()
-    seq = open_run_sequence(icfg)
-    gt = build_map(icfg, seq, desc="GT poses")
-    m_gt = mesh_and_metrics(gt, icfg, out, "mesh_gt.ply")
-    odo = np.asarray(slam_odometry(cfg.output))
-    od = build_map(icfg, seq, poses=odo, desc="odometry poses")
-    m_od = mesh_and_metrics(od, icfg, out, "mesh_odometry.ply")
-    res = {"frames": slam["frames"], "keyframes": slam["keyframes"], "loops": slam["loops"],
-           "ate": {"odometry": slam.get("ate_odometry"), "slam": slam.get("ate_slam")},
-           "recon": {"GT poses": m_gt.get("metrics", {}), "odometry poses": m_od.get("metrics", {}),
-                     "slam (remapped)": slam.get("metrics", {})},
-           "sizes": {k: slam[k] for k in ("map_bytes", "store_bytes", "keyframes")}}
+    res = slam_against_references(cfg, out)
     if res_odo is not None:
         res["odometry"] = res_odo
     _print(res)
-    with open(os.path.join(out, "bench.json"), "w") as f:
-        json.dump(res, f, indent=1, default=lambda x: x.tolist() if hasattr(x, "tolist") else str(x))
+    _write(out, "bench.json", res)
     print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
     return 0
+
+
+def slam_against_references(cfg, out: str) -> dict:
+    """`jaxmap slam`, and the maps of the same frames with the true poses and with the odometry alone."""
+    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.imt.run import build_map
+    from jaxmap.slam.run import run_slam
+
+    slam = run_slam(cfg, cfg.output)
+    icfg = cfg.imt()
+    seq = open_run_sequence(icfg)
+    m_gt = mesh_and_metrics(build_map(icfg, seq, desc="GT poses"), icfg, out, "mesh_gt.ply")
+    odo = np.asarray(slam_odometry(cfg.output))
+    m_od = mesh_and_metrics(build_map(icfg, seq, poses=odo, desc="odometry poses"), icfg, out, "mesh_odometry.ply")
+    return {"frames": slam["frames"], "keyframes": slam["keyframes"], "loops": slam["loops"],
+            "ate": {"odometry": slam.get("ate_odometry"), "slam": slam.get("ate_slam")},
+            "recon": {"GT poses": m_gt.get("metrics", {}), "odometry poses": m_od.get("metrics", {}),
+                      "slam (remapped)": slam.get("metrics", {})},
+            "sizes": {k: slam[k] for k in ("map_bytes", "store_bytes", "keyframes")}}
 
 
 KINECT_ROOM = "data/room300_kinect"
