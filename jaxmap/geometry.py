@@ -232,7 +232,10 @@ def transform_points(T, points, xnp=None):
 
 
 def rotate_vectors(R, vectors, xnp=None):
-    """Rotate row vectors by R [..., 3, 3]: [..., N, 3] -> [..., N, 3], `v R^T` (`SO3.apply`)."""
+    """Rotate row vectors by R [..., 3, 3]: [..., N, 3] -> [..., N, 3], `v R^T` (`SO3.apply`).
+
+    The one rotate_vectors, rotation first. Nothing is cast: numpy promotes float32 vectors by a float64 R
+    to float64, so pass R in the vectors' dtype to keep float32 (`R.astype(v.dtype)`)."""
     R, vectors = _converted(xnp, R, vectors)
     return SO3.from_matrix(R).apply(vectors)
 
