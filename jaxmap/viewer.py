@@ -32,6 +32,7 @@ import time
 import numpy as np
 
 from jaxmap.errors import DataError, JaxmapError
+from jaxmap.geometry import SE3
 
 log = logging.getLogger("jaxmap")
 
@@ -55,8 +56,8 @@ def to_world(points_s: np.ndarray, pose: np.ndarray, max_points: int | None = No
     pts = np.asarray(points_s, dtype=np.float32).reshape(-1, 3)
     if max_points is not None and len(pts) > max_points:
         pts = pts[np.random.default_rng(seed).choice(len(pts), max_points, replace=False)]
-    T = np.asarray(pose, dtype=np.float64)
-    return (pts @ T[:3, :3].T.astype(np.float32) + T[:3, 3].astype(np.float32)).astype(np.float32)
+    T_w_s = SE3.from_matrix(np.asarray(pose, dtype=np.float64)).astype(np.float32)  # display: float32 is plenty
+    return T_w_s.apply(pts).astype(np.float32)
 
 
 def _wxyz(R: np.ndarray) -> np.ndarray:
@@ -164,9 +165,9 @@ class Viewer:
 
     def show_pose(self, pose: np.ndarray, axes_length: float = 0.5) -> None:
         """The sensor's current pose [4,4] T_world_sensor, as axes."""
-        T = np.asarray(pose, dtype=np.float64)
+        T_w_s = SE3.from_matrix(np.asarray(pose, dtype=np.float64))
         self.server.scene.add_frame("/sensor", axes_length=axes_length, axes_radius=axes_length / 20,
-                                    wxyz=_wxyz(T[:3, :3]), position=T[:3, 3])
+                                    wxyz=_wxyz(T_w_s.rotation().matrix), position=T_w_s.translation())
 
     def add_trajectory_pose(self, pose: np.ndarray) -> None:
         """Append one pose to the trajectory and redraw it."""

@@ -37,7 +37,7 @@ def test_method_key_selects_the_odometry():
 
 def test_kiss_icp_odometry_on_the_noisy_small_city(dense_city):
     from jaxmap.io import open_sequence
-    from jaxmap.slam.kiss import odometry_trajectory
+    from jaxmap.slam.odometry import odometry_trajectory
     from jaxmap.slam.trajectory import ate
 
     seq = open_sequence(dense_city, end_frame=7)           # the straight street before the first corner

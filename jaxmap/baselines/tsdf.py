@@ -47,6 +47,7 @@ import time
 import numpy as np
 
 from jaxmap.errors import DataError
+from jaxmap.geometry import SE3
 
 log = logging.getLogger(__name__)
 
@@ -284,7 +285,6 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
     Returns: dict(voxels, frames, points, seconds, integrate_seconds, mesh_seconds, faces, vertices, mesh,
     voxel_m, trunc_m, mesh_res_m), also logged.
     """
-    from jaxmap.geometry import transform_points
     from jaxmap.io import open_sequence
     from jaxmap.mesh import save_mesh
 
@@ -310,8 +310,8 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
         pts = np.asarray(frame.points, dtype=np.float64)
         r = np.linalg.norm(pts, axis=1)
         pts = pts[(r >= min_range_m) & (r <= max_range_m)]
-        pose = np.asarray(frame.pose, dtype=np.float64)
-        vol.integrate(transform_points(pose, pts), pose[:3, 3])
+        T_w_s = SE3.from_matrix(np.asarray(frame.pose, dtype=np.float64))
+        vol.integrate(T_w_s.apply(pts), T_w_s.translation())
         n_frames += 1
         n_points += len(pts)
     vol.compact()

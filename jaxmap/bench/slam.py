@@ -229,7 +229,7 @@ def compare_odometry(cfg, seq) -> dict:
     import dataclasses
 
     from jaxmap.errors import JaxmapError
-    from jaxmap.slam.kiss import odometry_trajectory
+    from jaxmap.slam.odometry import odometry_trajectory
     from jaxmap.slam.trajectory import ate, have_evo, rpe
 
     gt = np.asarray(seq.poses, dtype=np.float64)

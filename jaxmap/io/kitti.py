@@ -269,6 +269,7 @@ def write_calib(path, Tr) -> None:
 
 def lidar_poses_from_camera(poses_cam: np.ndarray, Tr: np.ndarray) -> np.ndarray:
     """SHINE/N3 convention: T_world_lidar = inv(Tr) @ T_cam_pose @ Tr. [M,4,4] -> [M,4,4]."""
+    # a general inverse, not SE3.inverse: KITTI's Tr is rigid only to its printed digits, and SHINE/N3 do this
     return np.linalg.inv(Tr) @ poses_cam @ Tr
 
 

@@ -11,7 +11,7 @@ import logging
 import numpy as np
 
 from jaxmap.errors import DataError
-from jaxmap.geometry import validate_pose
+from jaxmap.geometry import SE3, validate_pose
 from jaxmap.n3.core import RawScan, ScanBatch
 from jaxmap.preprocess import preprocess_scan
 
@@ -53,8 +53,9 @@ def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket:
     n = len(points_s)
     out = np.zeros((bucket, 3), np.float32)
     out[:n] = points_s
-    return RawScan(out, np.arange(bucket) < n, pose[:3, :3].astype(np.float32),
-                   (pose[:3, 3] - origin_w).astype(np.float32))
+    T_w_s = SE3.from_matrix(pose)
+    return RawScan(out, np.arange(bucket) < n, T_w_s.rotation().matrix.astype(np.float32),
+                   (T_w_s.translation() - origin_w).astype(np.float32))
 
 
 def bucket_for(n: int, current: int = 0) -> int:
@@ -73,10 +74,12 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
     precise as float32 allows however far the scene is from the world origin. Padding rows sit one
     metre from the sensor, valid = False.
     """
-    R, t = pose[:3, :3], pose[:3, 3]
-    pts = (points_s.astype(np.float64) @ R.T + (t - origin_w)).astype(np.float32)
-    nrm = (normals_s @ R.T.astype(np.float32)).astype(np.float32)
-    sensor = (t - origin_w).astype(np.float32)
+    T_w_s = SE3.from_matrix(pose)
+    # T_map_sensor: the map frame is the world frame shifted by origin_w (subtracted in float64 first)
+    T_m_s = SE3.from_rotation_and_translation(T_w_s.rotation(), T_w_s.translation() - origin_w)
+    pts = T_m_s.apply(points_s.astype(np.float64)).astype(np.float32)
+    nrm = T_m_s.rotation().astype(np.float32).apply(normals_s).astype(np.float32)  # float32 matmul
+    sensor = T_m_s.translation().astype(np.float32)
     n = len(pts)
     out_p = np.empty((bucket, 3), np.float32)
     out_n = np.empty((bucket, 3), np.float32)

@@ -26,7 +26,7 @@ import numpy as np
 
 from jaxmap.errors import JaxmapError
 from jaxmap.geometry import compose, orthonormalize
-from jaxmap.slam.odometry import OdometryConfig, OdomStep, Scan, quiet_open3d, to_o3d
+from jaxmap.slam.odometry_common import OdometryConfig, OdomStep, Scan, quiet_open3d, to_o3d
 
 log = logging.getLogger("jaxmap")
 
@@ -106,32 +106,3 @@ class KissOdometry:
         """Apply a world-frame correction: pose <- T_corr @ pose (KISS-ICP's local map is untouched)."""
         self.C = compose(T_corr, self.C)
         self.pose = compose(T_corr, self.pose)
-
-
-def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tuple[np.ndarray, float]:
-    """Run the odometry `cfg.method` names over every frame of `seq` from its first pose.
-
-    Returns (poses [N,4,4] float64, median seconds per frame after the first)."""
-    import time
-
-    from jaxmap.slam.odometry import make_odometry
-
-    odo = make_odometry(cfg, np.asarray(seq.poses[0], dtype=np.float64))
-    poses, times = [], []
-    bar = None
-    if progress:
-        import sys
-
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(seq), unit="frame", desc=f"odometry ({cfg.method})", file=sys.stderr)
-    for i in range(len(seq)):
-        pts = seq.frame(i).points
-        t0 = time.perf_counter()
-        poses.append(odo.step(pts).pose)
-        times.append(time.perf_counter() - t0)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
-    return np.stack(poses), float(np.median(times[1:])) if len(times) > 1 else float(times[0])

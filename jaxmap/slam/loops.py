@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from jaxmap.geometry import pose_change, se3_inverse, transform_points
+from jaxmap.geometry import SE3, pose_change, se3_inverse
 from jaxmap.slam.odometry import icp, to_o3d
 
 
@@ -128,7 +128,7 @@ def free_space_conflict(points_a, points_b, T_b_a, margin_m: float, res_deg: flo
     Points whose direction b has no return in are not counted. Returns 0 when none can be tested.
     """
     res = np.radians(res_deg)
-    pa = transform_points(np.asarray(T_b_a, np.float64), np.asarray(points_a, np.float64))
+    pa = SE3.from_matrix(np.asarray(T_b_a, np.float64)).apply(np.asarray(points_a, np.float64))
     kb, rb = _range_bins(np.asarray(points_b, np.float64), res)
     keys, inv = np.unique(kb, return_inverse=True)
     rmin = np.full(len(keys), np.inf)
@@ -149,7 +149,7 @@ def translation_constraint(source_pts, target_pts, target_normals, T, max_corr_m
     """
     from scipy.spatial import cKDTree
 
-    ps = transform_points(np.asarray(T, np.float64), np.asarray(source_pts, np.float64))
+    ps = SE3.from_matrix(np.asarray(T, np.float64)).apply(np.asarray(source_pts, np.float64))
     d, idx = cKDTree(np.asarray(target_pts, np.float64)).query(ps, distance_upper_bound=max_corr_m)
     n = np.asarray(target_normals, np.float64)[idx[np.isfinite(d)]]
     if len(n) < 3:

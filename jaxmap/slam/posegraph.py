@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxmap.geometry import orthonormalize, pose_change, se3_inverse
-from jaxmap.slam.odometry import quiet_open3d
+from jaxmap.slam.odometry_common import quiet_open3d
 
 
 class PoseGraph:

@@ -61,7 +61,9 @@ import numpy as np
 from jaxmap.io.kitti import camera_poses_from_lidar, write_calib, write_poses
 from jaxmap.io.pointcloud import write_mesh_ply, write_points_ply, write_scan_bin
 from jaxmap.synth import common as C
+from jaxmap.synth import suburb
 from jaxmap.synth import traffic as traffic_mod
+from jaxmap.synth.streets import CURB_H, TILE, Scene, add_pole, add_tree, car_mesh, inside_convex
 
 log = logging.getLogger("jaxmap")
 
@@ -125,11 +127,9 @@ LONG = CityPreset(half_extent=128.0, street_x=0.0, street_y=0.0, road_width=8.0,
                   streets_x=(-100.0, -60.0, -20.0, 20.0, 60.0, 100.0), streets_y=(-72.0, -36.0, 0.0, 36.0, 72.0),
                   half_extent_y=100.0, parks=((1, 1), (4, 1), (2, 3), (5, 2), (3, 4)))
 
-CURB_H = 0.15            # sidewalk / block height above the road
 SENSOR_H = 1.73          # LiDAR height above the road (KITTI)
 ELEVATION_DEG = (-25.0, 2.0)
 MAX_RANGE = 50.0
-TILE = 2.0               # ground and curb faces are split into tiles of at most this size (m)
 # Ground truth: GT points are kept within GT_NEAR_M of an observation (a static-scene hit of any frame,
 # the hits thinned to one per OBS_VOXEL_M voxel); each carries one of CITY_CLASSES (uint8 index).
 GT_NEAR_M = 1.0
@@ -393,64 +393,6 @@ def beam_directions(beams: int, azimuth_steps: int) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 
 
-class _Scene:
-    """Collects object meshes with ids and the 'inside' tests used to drop hidden GT samples."""
-
-    def __init__(self):
-        self.parts: list = []      # (vertices, faces)
-        self.kinds: list[str] = []
-        self.hidden: list = []     # (object id whose samples are tested, inside(points) -> mask)
-
-    def add(self, mesh, kind: str) -> int:
-        self.parts.append(mesh)
-        self.kinds.append(kind)
-        return len(self.parts) - 1
-
-    def build(self):
-        mb = C.MeshBuilder()
-        obj = []
-        for i, m in enumerate(self.parts):
-            mb.add(m)
-            obj.append(np.full(len(m[1]), i, np.int32))
-        v, f = mb.build()
-        return v, f, np.concatenate(obj)
-
-
-def _inside_convex(poly: np.ndarray, z0: float, z1: float, eps: float = 1e-6):
-    """inside(points) for a vertical prism over a CCW convex polygon (strictly inside by eps)."""
-    poly = np.asarray(poly, dtype=np.float64)
-    if C._polygon_area2(poly) < 0:
-        poly = poly[::-1]
-    a = poly
-    b = np.roll(poly, -1, axis=0)
-
-    lo, hi = poly.min(0), poly.max(0)
-
-    def inside(p):
-        m = ((p[:, 2] > z0 - eps) & (p[:, 2] < z1 - eps) & (p[:, 0] > lo[0]) & (p[:, 0] < hi[0])
-             & (p[:, 1] > lo[1]) & (p[:, 1] < hi[1]))
-        idx = np.flatnonzero(m)
-        q = p[idx]
-        ok = np.ones(len(idx), bool)
-        for ai, bi in zip(a, b):
-            e = bi - ai
-            ok &= e[0] * (q[:, 1] - ai[1]) - e[1] * (q[:, 0] - ai[0]) > eps
-        m[idx] = ok
-        return m
-    inside.x_range = (lo[0], hi[0])  # no point outside it is inside (lets _gt_points skip the rest)
-    return inside
-
-
-def _inside_ellipsoid(center, radii, shrink: float = 0.98):
-    c = np.asarray(center)
-    r = np.asarray(radii) * shrink  # the icosphere's facets lie slightly inside the ellipsoid
-
-    def inside(p):
-        return (((p - c) / r) ** 2).sum(1) < 1.0
-    inside.x_range = (c[0] - r[0], c[0] + r[0])
-    return inside
-
-
 def _intervals(P: CityPreset):
     """Cell bounds along x and y: [-h, s0 - w, s0 + w, s1 - w, ..., h]; even cells are blocks, odd ones roads."""
     w = P.road_width / 2
@@ -556,34 +498,12 @@ def _street_edges(x0, x1, y0, y1, sides):
     return edges
 
 
-def _tree(scene: _Scene, xy, rng, max_r: float, z0: float):
-    r_trunk = rng.uniform(0.12, 0.18)
-    trunk_h = rng.uniform(2.3, 3.0)
-    rxy = rng.uniform(0.75, 1.0) * max_r
-    rz = rng.uniform(1.0, 1.5) * rxy
-    z_top = z0 + trunk_h
-    center = (xy[0], xy[1], z_top + rz - 0.15)
-    tid = scene.add(C.cylinder(xy[0], xy[1], r_trunk, z0, z_top, n=16, bottom=False, top=False), "trunk")
-    scene.add(C.ellipsoid(center, (rxy, rxy, rz), subdivisions=3), "crown")
-    scene.hidden.append((tid, _inside_ellipsoid(center, (rxy, rxy, rz))))
-
-
-def _car(xy, yaw, rng):
-    L = rng.uniform(4.0, 4.8)
-    H = rng.uniform(1.4, 1.6)
-    W = rng.uniform(1.7, 1.85)
-    prof = np.array([[0, 0.3], [L, 0.3], [L, 0.85], [0.78 * L, 1.0], [0.62 * L, H], [0.25 * L, H],
-                     [0.08 * L, 1.0], [0, 0.95]])
-    prof[:, 0] -= L / 2
-    return C.extrude_profile(prof, W, (xy[0], xy[1], 0.0), yaw), L, W
-
-
 def build_city(P: CityPreset, seed: int, path):
-    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], _Scene).
+    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], Scene).
 
     path: the LoopPath / RoutePath driven; parked cars on it are left out."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, 101]))
-    scene = _Scene()
+    scene = Scene()
     gid = scene.add(_ground(P), "ground")
     traj = path.samples(0.25)
     S = P.sidewalk
@@ -626,17 +546,17 @@ def build_city(P: CityPreset, seed: int, path):
             k = 0
             while s < length - 3.0:
                 xy = p0 + s * u + nrm * P.tree_from_curb
-                _tree(scene, xy, rng, max_r=min(1.8, S - P.tree_from_curb - 0.3), z0=CURB_H)
+                add_tree(scene, xy, rng, max_r=min(1.8, S - P.tree_from_curb - 0.3), z0=CURB_H)
                 gap = rng.uniform(8.0, 12.0)
                 if k % 2 == 0 and s + gap / 2 < length - 3.0:
                     pxy = p0 + (s + gap / 2) * u + nrm * 0.4
-                    _pole(scene, pxy, u, rng)
+                    add_pole(scene, pxy, u, rng)
                 s += gap
                 k += 1
             s = rng.uniform(1.0, 3.0)
             while s < length - 1.0 - 4.8:
                 if rng.random() < 0.7:
-                    mesh, L, W = _car(p0 + (s + 2.4) * u - nrm * 1.1, float(np.arctan2(u[1], u[0]))
+                    mesh, L, W = car_mesh(p0 + (s + 2.4) * u - nrm * 1.1, float(np.arctan2(u[1], u[0]))
                                       + (np.pi if rng.random() < 0.5 else 0.0), rng)
                     if clear_of_path(mesh[0][:, :2], 0.6):
                         scene.add(mesh, "car")
@@ -647,7 +567,7 @@ def build_city(P: CityPreset, seed: int, path):
     return v, f, obj, scene
 
 
-def _building(scene: _Scene, gid: int, lot, rng):
+def _building(scene: Scene, gid: int, lot, rng):
     x0, x1, y0, y1 = lot
     sb = rng.uniform(0.0, min(1.0, 0.12 * min(x1 - x0, y1 - y0)), size=4)  # setbacks
     x0, x1, y0, y1 = x0 + sb[0], x1 - sb[1], y0 + sb[2], y1 - sb[3]
@@ -665,26 +585,16 @@ def _building(scene: _Scene, gid: int, lot, rng):
     else:
         poly = C.ellipse((x0 + x1) / 2, (y0 + y1) / 2, w / 2, h / 2, n=64)
     scene.add(C.prism(poly, CURB_H, CURB_H + height, bottom=False, top=True), "building")
-    scene.hidden.append((gid, _inside_convex(poly, CURB_H - 0.01, CURB_H + height)))
+    scene.hidden.append((gid, inside_convex(poly, CURB_H - 0.01, CURB_H + height)))
 
 
-def _pole(scene: _Scene, xy, street_dir, rng):
-    r = 0.08
-    top = CURB_H + rng.uniform(4.5, 7.0)
-    scene.add(C.cylinder(xy[0], xy[1], r, CURB_H, top, n=16, bottom=False, top=True), "pole")
-    if rng.random() < 0.5:  # a traffic sign: a 2 cm plate facing along the street, touching the pole
-        c = np.asarray(xy) + street_dir * (r + 0.01)
-        yaw = float(np.arctan2(street_dir[1], street_dir[0]))
-        scene.add(C.oriented_box(c, (0.02, 0.6), yaw, CURB_H + 2.2, CURB_H + 2.8), "sign")
-
-
-def _park(scene: _Scene, lot, row: int, n_rows: int, rng, along_x: bool):
+def _park(scene: Scene, lot, row: int, n_rows: int, rng, along_x: bool):
     """An open lot with a tree, a fence of thin slats on its first street side and a railing on the other."""
     x0, x1, y0, y1 = lot
     cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
     r = min(x1 - x0, y1 - y0) / 2 - 0.6
     if r > 0.8:
-        _tree(scene, (cx, cy), rng, max_r=min(r, 2.5), z0=CURB_H)
+        add_tree(scene, (cx, cy), rng, max_r=min(r, 2.5), z0=CURB_H)
     # the lot's street sides: its low edge (-y, or -x) gets the fence, its high edge the railing
     lines = []
     if along_x:
@@ -796,8 +706,6 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     modes = realistic_modes(realistic)
     P = LONG if long else SMALL if small else DEFAULT
     if layout == "suburb":
-        from jaxmap.synth import suburb
-
         P = suburb.SMALL if small else suburb.DEFAULT
     n_frames = int(n_frames or P.frames)
     beams = int(beams or P.beams)
@@ -949,12 +857,10 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
 def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int, spacing: float) -> list:
     """The moving objects of generate_city(traffic=n) (`jaxmap.synth.traffic.plan` on this layout's lanes
     and sidewalks)."""
-    parked = traffic_mod._footprints_of(scene, "car")
+    parked = traffic_mod.footprints_of(scene, "car")
     ego_s = np.arange(n_frames) * spacing
     half_car = 0.9  # the moving cars are <= 1.8 m wide
     if layout == "suburb":
-        from jaxmap.synth import suburb
-
         w = P.road_width / 2
         b = w - 1.1 - 0.925 - 0.025  # the parked cars' inner edge (outer curb), a margin
         lane_same, lane_opp = b - half_car, -w + 1.5 + half_car
@@ -1017,7 +923,7 @@ class _ObservedPoints:
         return self._thin(np.concatenate(self.chunks), self.voxel_m)
 
 
-def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int, observed: np.ndarray,
+def _gt_points(V, F, obj, scene: Scene, density: float, seed: int, observed: np.ndarray,
                chunk: int = 2_000_000):
     """Uniform samples of the static mesh within GT_NEAR_M of an observed point, hidden samples (inside
     other solids) removed: (points [N,3] float32, normals [N,3] float32, classes [N] uint8), world frame.
@@ -1055,7 +961,7 @@ def _gt_points(V, F, obj, scene: _Scene, density: float, seed: int, observed: np
     return np.concatenate(pts), np.concatenate(nrm), np.concatenate(cls)
 
 
-def _visible_samples(V, F, obj, scene: _Scene, density: float, seed: int, near=None, obj_class=None):
+def _visible_samples(V, F, obj, scene: Scene, density: float, seed: int, near=None, obj_class=None):
     """Samples of faces F [n,3] (object ids obj [n], non-decreasing) that pass near(points) (when given)
     and the hidden-tests of their objects: (points [N,3] float32, normals [N,3] float32, classes [N]
     uint8: obj_class of the object, or for the ground road / sidewalk / curb by normal and height)."""
@@ -1063,7 +969,7 @@ def _visible_samples(V, F, obj, scene: _Scene, density: float, seed: int, near=N
     if near is not None and len(pts):
         ok = near(pts)
         pts, nrm, fid = pts[ok], nrm[ok], fid[ok]
-    # faces are grouped by object (in _Scene order) and samples by face: each object's samples are one run
+    # faces are grouped by object (in Scene order) and samples by face: each object's samples are one run
     sample_obj = obj[fid]
     keep = np.ones(len(pts), bool)
     by_x = {}  # object id -> (order of its samples by x, their sorted x)

@@ -61,7 +61,8 @@ def flip(mesh):
     return v, np.asarray(f)[:, ::-1].copy()
 
 
-def _polygon_area2(poly: np.ndarray) -> float:
+def polygon_area2(poly: np.ndarray) -> float:
+    """Twice the signed area of a polygon [N, 2] (xy): positive when its vertices run counter-clockwise."""
     x, y = poly[:, 0], poly[:, 1]
     return float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
 
@@ -70,7 +71,7 @@ def triangulate_polygon(poly) -> np.ndarray:
     """Ear clipping of a simple polygon [n,2] given counter-clockwise -> triangles [n-2,3] (CCW)."""
     poly = np.asarray(poly, dtype=np.float64)
     n = len(poly)
-    if _polygon_area2(poly) <= 0:
+    if polygon_area2(poly) <= 0:
         raise ValueError("polygon must be counter-clockwise")
     idx = list(range(n))
     tris = []
@@ -111,7 +112,7 @@ def prism(poly, z0: float, z1: float, bottom: bool = True, top: bool = True):
     `bottom=False` omits the bottom cap (objects standing on the ground: that face is never seen and
     would only add hidden surface to the ground truth)."""
     poly = np.asarray(poly, dtype=np.float64)
-    if _polygon_area2(poly) < 0:
+    if polygon_area2(poly) < 0:
         poly = poly[::-1]
     n = len(poly)
     lo = np.c_[poly, np.full(n, z0)]

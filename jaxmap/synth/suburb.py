@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from jaxmap.synth import common as C
-from jaxmap.synth.city import CURB_H, TILE, _car, _inside_convex, _pole, _Scene, _tree
+from jaxmap.synth.streets import CURB_H, TILE, Scene, add_pole, add_tree, car_mesh, inside_convex
 
 
 @dataclass(frozen=True)
@@ -134,7 +134,7 @@ def _orient_up(mesh):
     return v, f[area > 1e-9]  # (the fan's degenerate triangles at the centre)
 
 
-def _house(scene: _Scene, gid: int, centre, yaw: float, rng, fence: bool):
+def _house(scene: Scene, gid: int, centre, yaw: float, rng, fence: bool):
     """A detached house: a gabled prism (ridge across the facade) standing on the raised ground, its
     front facade facing the road (yaw = direction from the house to the road)."""
     width = rng.uniform(8.0, 12.0)   # along the facade
@@ -146,7 +146,7 @@ def _house(scene: _Scene, gid: int, centre, yaw: float, rng, fence: bool):
     mesh = C.extrude_profile(prof, width, (centre[0], centre[1], CURB_H), yaw)
     hid = scene.add(mesh, "house")
     foot = C.oriented_box(centre, (depth, width), yaw, 0.0, 1.0)[0][:4, :2]
-    scene.hidden.append((gid, _inside_convex(foot, CURB_H - 0.01, CURB_H + eaves + ridge)))
+    scene.hidden.append((gid, inside_convex(foot, CURB_H - 0.01, CURB_H + eaves + ridge)))
     scene.hidden.append((hid, lambda p: p[:, 2] < CURB_H + 1e-6))  # its bottom face, on the ground
     if fence:
         u = np.array([np.cos(yaw), np.sin(yaw)])        # towards the road
@@ -162,9 +162,9 @@ def _house(scene: _Scene, gid: int, centre, yaw: float, rng, fence: bool):
 
 
 def build_suburb(P: SuburbPreset, seed: int, path: CurvePath):
-    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], _Scene)."""
+    """The static scene: (vertices [V,3], faces [F,3], object id per face [F], Scene)."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, 111]))
-    scene = _Scene()
+    scene = Scene()
     gid = scene.add(_ground(P), "ground")
     traj = path.samples(0.25)
     w = P.road_width / 2
@@ -200,29 +200,29 @@ def build_suburb(P: SuburbPreset, seed: int, path: CurvePath):
             _house(scene, gid, p, yaw, rng, fence=fence)
             if row == 0:
                 tp, _, _ = frame_at((s + 0.5 * L / n_h) % L, w + 2.2)
-                _tree(scene, tp, rng, max_r=rng.uniform(1.2, 1.6), z0=CURB_H)
+                add_tree(scene, tp, rng, max_r=rng.uniform(1.2, 1.6), z0=CURB_H)
     # the inner park: a ring of trees and lamps along the inner curb, a pavilion in the middle
     s = rng.uniform(0, 5)
     k = 0
     while s < L - 4:
         p, n, yaw = frame_at(s, -w - 2.0)
         if k % 3 == 2:
-            _pole(scene, frame_at(s, -w - 0.5)[0], np.array([np.cos(yaw), np.sin(yaw)]), rng)
+            add_pole(scene, frame_at(s, -w - 0.5)[0], np.array([np.cos(yaw), np.sin(yaw)]), rng)
         else:
-            _tree(scene, p, rng, max_r=1.4, z0=CURB_H)
+            add_tree(scene, p, rng, max_r=1.4, z0=CURB_H)
         s += rng.uniform(7.0, 10.0)
         k += 1
     pr = 0.15 * P.r0
     poly = C.circle(0.0, 0.0, pr, n=48)
     h = rng.uniform(6.0, 9.0)
     scene.add(C.prism(poly, CURB_H, CURB_H + h, bottom=False, top=True), "building")
-    scene.hidden.append((gid, _inside_convex(poly, CURB_H - 0.01, CURB_H + h)))
+    scene.hidden.append((gid, inside_convex(poly, CURB_H - 0.01, CURB_H + h)))
     # cars parked along the outer curb (on the road), clear of the drive
     s = rng.uniform(1.0, 4.0)
     while s < L - 6.0:
         if rng.random() < 0.6:
             p, n, yaw = frame_at(s + 2.4, w - 1.1)
-            mesh, _, _ = _car(p, yaw + (np.pi if rng.random() < 0.5 else 0.0), rng)
+            mesh, _, _ = car_mesh(p, yaw + (np.pi if rng.random() < 0.5 else 0.0), rng)
             if clear_of_path(mesh[0][:, :2], 0.6):
                 scene.add(mesh, "car")
             s += 4.8 + rng.uniform(1.5, 4.0)

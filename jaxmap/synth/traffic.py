@@ -70,7 +70,7 @@ def polys_overlap(a, b) -> np.ndarray:
     return out
 
 
-def _footprints_of(scene, kind: str):
+def footprints_of(scene, kind: str):
     """Convex footprints [4,2] (minimum-area bounding rectangles of the xy vertices) of scene objects."""
     out = []
     for (v, _), k in zip(scene.parts, scene.kinds):
