@@ -176,7 +176,8 @@ def imt(args) -> int:
 
 def slam(args) -> int:
     """`jaxmap slam CONFIG [--data DIR] [--out RUN]`: odometry, loop closure, pose graph, remapped map."""
-    from jaxmap.slam.run import SlamConfig, run_slam
+    from jaxmap.config import SlamConfig
+    from jaxmap.slam.run import run_slam
     from jaxmap.viewer import view_options
 
     cfg = config_from_args(args, SlamConfig)

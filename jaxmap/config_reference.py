@@ -43,7 +43,7 @@ from typing import Any, Iterator, NamedTuple
 
 from jaxmap.config import ImtConfig, MapConfig
 from jaxmap.imt.prior import PriorConfig
-from jaxmap.slam.run import SlamConfig
+from jaxmap.config import SlamConfig
 
 BEGIN = "<!-- config-reference:begin -->"
 END = "<!-- config-reference:end -->"

@@ -67,7 +67,7 @@ def _schema(name):
 
         return ImtConfig
     if name in ("room_slam", "city_slam"):
-        from jaxmap.slam.run import SlamConfig
+        from jaxmap.config import SlamConfig
 
         return SlamConfig
     if name == "prior":

@@ -11,7 +11,7 @@ import pytest
 from jaxmap import config_reference as cr
 from jaxmap.config import ImtConfig, MapConfig, TrainConfig
 from jaxmap.imt.prior import PriorConfig
-from jaxmap.slam.run import SlamConfig
+from jaxmap.config import SlamConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 PAGE = os.path.join(REPO, "docs", "configuration.md")

@@ -28,7 +28,7 @@ def test_method_key_selects_the_odometry():
     assert isinstance(make_odometry(OdometryConfig.lidar(method="kiss_icp")), KissOdometry)
     with pytest.raises(ConfigError, match="frontend.odometry.method"):
         make_odometry(OdometryConfig(method="loam"))
-    from jaxmap.slam.run import SlamConfig
+    from jaxmap.config import SlamConfig
 
     assert load_config("configs/room_slam.yaml", schema=SlamConfig).frontend.odometry.method == "icp"
     cfg = load_config("configs/city_slam.yaml", ["frontend.odometry.method=kiss_icp"], schema=SlamConfig)

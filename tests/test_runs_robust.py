@@ -356,7 +356,7 @@ def test_every_rule_names_a_field_of_its_config():
 
 def test_shipped_configs_pass_their_rules():
     from jaxmap.config import ImtConfig, load_config
-    from jaxmap.slam.run import SlamConfig
+    from jaxmap.config import SlamConfig
 
     load_config("configs/city.yaml")
     load_config("configs/room_imt.yaml", schema=ImtConfig)

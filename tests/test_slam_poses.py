@@ -102,7 +102,8 @@ def test_a_failure_mid_run_saves_the_map_and_names_the_frame(small_room, tmp_pat
     pytest.importorskip("open3d")
     from jaxmap.imt.mapper import ImtMapper
     from jaxmap.slam import frontend
-    from jaxmap.slam.run import SlamConfig, run_slam
+    from jaxmap.config import SlamConfig
+    from jaxmap.slam.run import run_slam
 
     real = frontend.FrontEnd.add_frame
 
@@ -128,7 +129,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
     from jaxmap.io import open_sequence
     from jaxmap.slam import run as run_mod
     from jaxmap.slam.frontend import FrameResult
-    from jaxmap.slam.run import SlamConfig
+    from jaxmap.config import SlamConfig
 
     seq = open_sequence(str(small_room))
     gt = np.asarray(seq.poses)[:6]

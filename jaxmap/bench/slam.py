@@ -36,7 +36,7 @@ def _bench_config(args, data: str, out: str):
     from jaxmap.bench import base_overrides
     from jaxmap.config import load_config, shipped_config_path
     from jaxmap.io import detect_kind
-    from jaxmap.slam.run import SlamConfig
+    from jaxmap.config import SlamConfig
     from jaxmap.synth.city import generate_city
     from jaxmap.synth.room import generate_room
 
@@ -154,7 +154,8 @@ def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
     from jaxmap.config import load_config, shipped_config_path
     from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
     from jaxmap.imt.run import build_map
-    from jaxmap.slam.run import SlamConfig, run_slam
+    from jaxmap.config import SlamConfig
+    from jaxmap.slam.run import run_slam
 
     os.makedirs(out, exist_ok=True)
     over = base_overrides(args, data, os.path.join(out, "slam")) + [f"data.every_frame={every}"]

@@ -4,15 +4,16 @@ load_config`."""
 from jaxmap.config.loading import (apply_overrides, config_from_args, from_dict, load_config, save_config,
                                    shipped_config_path, to_dict, unknown_key_message)
 from jaxmap.config.rules import (CHECKS, DATA_KINDS, RULES, Rule, above, at_least, lattice_problem, one_of,
-                                 register_rules, strictly_within, validate, within)
+                                 strictly_within, validate, within)
 from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
+from jaxmap.config.slam import FrontEndConfig, LoopConfig, OdometryConfig, SlamConfig
 from jaxmap.errors import ConfigError
 
 __all__ = ["apply_overrides", "config_from_args", "from_dict", "load_config", "save_config", "shipped_config_path",
            "to_dict", "unknown_key_message", "CHECKS", "DATA_KINDS", "RULES", "Rule", "above", "at_least",
-           "lattice_problem", "one_of", "register_rules", "strictly_within", "validate", "within", "DataConfig",
+           "lattice_problem", "one_of", "strictly_within", "validate", "within", "DataConfig",
            "DecoderConfig", "EvalConfig", "GridConfig", "ImtConfig", "LatentMapConfig", "LatentMeshConfig",
            "MapConfig", "MeshConfig", "PreprocessConfig", "SamplingConfig", "TrainConfig", "WindowConfig",
-           "ConfigError"]
+           "FrontEndConfig", "LoopConfig", "OdometryConfig", "SlamConfig", "ConfigError"]

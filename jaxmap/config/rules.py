@@ -1,18 +1,19 @@
 """Value rules of the config keys, checked when a config is loaded (file, --set, a checkpoint's meta.json).
 
 One table: RULES[dataclass][field] for single values, CHECKS[dataclass] for rules across fields. A key
-without a rule loads as its type allows; add its rule here.
+without a rule loads as its type allows; add its rule here (every command's config is in this package).
 """
 from __future__ import annotations
 
 import dataclasses
 import difflib
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
+from jaxmap.config.slam import EDGE_INFORMATION, ODOMETRY_METHODS, FrontEndConfig, OdometryConfig, SlamConfig
 from jaxmap.errors import ConfigError
 
 DATA_KINDS = ("auto", "kitti", "depth", "rosbag", "tum", "replica", "las")
@@ -158,6 +159,8 @@ RULES: dict[type, dict[str, Rule]] = {
                       "cells_per_voxel": at_least(0), "transform_cells_per_voxel": at_least(0)},
     LatentMeshConfig: {"resolution": EVEN_AT_LEAST_2, "min_weight": at_least(0.0), "min_component_faces": at_least(0)},
     ImtConfig: {"output": NONEMPTY},
+    OdometryConfig: {"method": one_of(*ODOMETRY_METHODS), "max_iter": at_least(1), "normals_k": at_least(3)},
+    FrontEndConfig: {"edge_information": one_of(*EDGE_INFORMATION)},
 }
 
 CHECKS: dict[type, list[Callable[[Any, str], Any]]] = {
@@ -165,14 +168,8 @@ CHECKS: dict[type, list[Callable[[Any, str], Any]]] = {
     ImtConfig: [host_preprocess_checks],
     DataConfig: [_data_checks],
     PreprocessConfig: [_preprocess_checks],
+    SlamConfig: [host_preprocess_checks],
 }
-
-
-def register_rules(schema: type, checks: Sequence[Callable[[Any, str], Any]] = (), **rules: Rule) -> None:
-    """Add rules for the fields of config dataclass `schema` (defined outside this module), and checks
-    across its fields (see `_map_checks`)."""
-    RULES.setdefault(schema, {}).update(rules)
-    CHECKS.setdefault(schema, []).extend(c for c in checks if c not in CHECKS.get(schema, []))
 
 
 def validate(cfg: Any, source: str = "<config>", origins: dict[str, str] | None = None) -> None:

@@ -11,9 +11,10 @@ T_world_sensor; scans [N,3] float32 in the sensor frame.
         result = fe.add_frame(frame.points)
     poses = fe.trajectory()
 """
-from jaxmap.slam.frontend import FrameResult, FrontEnd, FrontEndConfig
-from jaxmap.slam.loops import LoopConfig, LoopResult, find_candidates, verify
-from jaxmap.slam.odometry import IcpResult, Odometry, OdometryConfig, OdomStep, icp, make_odometry
+from jaxmap.config.slam import FrontEndConfig, LoopConfig, OdometryConfig
+from jaxmap.slam.frontend import FrameResult, FrontEnd
+from jaxmap.slam.loops import LoopResult, find_candidates, verify
+from jaxmap.slam.odometry import IcpResult, Odometry, OdomStep, icp, make_odometry
 from jaxmap.slam.posegraph import PoseGraph
 from jaxmap.slam.trajectory import ate, read_pose_snapshot, read_tum, rpe, write_kitti, write_tum
 

@@ -18,19 +18,19 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from jaxmap.config.slam import EDGE_INFORMATION, FrontEndConfig
 from jaxmap.geometry import compose, orthonormalize, pose_change, se3_inverse
-from jaxmap.slam.loops import LoopConfig, LoopResult, find_candidates, verify
-from jaxmap.slam.odometry import OdometryConfig, Scan, make_odometry
+from jaxmap.slam.loops import LoopResult, find_candidates, verify
+from jaxmap.slam.odometry import Scan, make_odometry
 from jaxmap.slam.posegraph import PoseGraph
 
 log = logging.getLogger("jaxmap")
 
 WEAK_INFORMATION = np.eye(6)   # information of an edge from the motion prior alone (ICP failed)
-EDGE_INFORMATION = ("isotropic", "icp")
 
 
 def isotropic_information(info: np.ndarray) -> np.ndarray:
@@ -47,45 +47,6 @@ def isotropic_information(info: np.ndarray) -> np.ndarray:
     info = np.asarray(info, np.float64)
     a, b = np.trace(info[:3, :3]) / 3.0, np.trace(info[3:, 3:]) / 3.0
     return np.diag([a, a, a, b, b, b])
-
-
-@dataclass(frozen=True)
-class FrontEndConfig:
-    """Front-end parameters. `FrontEndConfig()` suits the depth camera, `FrontEndConfig.lidar()` the LiDAR.
-
-    odometry, loops:            see OdometryConfig and LoopConfig
-    keyframe_every:             a keyframe needs at least this many frames since the last keyframe ...
-    keyframe_min_translation_m, keyframe_min_rotation_deg: ... and this much motion since it (either one;
-                                both 0 = every `keyframe_every`-th frame is a keyframe)
-    loop_cooldown:              after an accepted loop, this many keyframes skip the loop search
-    graph_max_corr_m:           pose-graph line-process distance (see PoseGraph.optimize): a loop edge that
-                                disagrees with the odometry by much more than this is pruned. None =
-                                loops.max_correction_m, the largest correction a verified loop may make
-    preference_loop_closure, edge_prune_threshold: passed to PoseGraph.optimize
-    edge_information:           "isotropic" (default): each edge's information is ICP's made isotropic per
-                                block (the rotation block and the translation block each replaced by its
-                                mean eigenvalue times I, no cross terms; `isotropic_information`); "icp":
-                                open3d's information as computed. Measured on the drifting 300-frame room
-                                (every 6th frame, 0.002 z^2 depth noise, one loop): ATE 12.9 cm odometry,
-                                13.3 cm with "icp", 5.9 cm with "isotropic" (`jaxmap bench slam --only drift`)
-    """
-    odometry: OdometryConfig = field(default_factory=OdometryConfig)
-    loops: LoopConfig = field(default_factory=LoopConfig)
-    keyframe_every: int = 1             # a keyframe needs at least this many frames since the last keyframe ...
-    keyframe_min_translation_m: float = 0.0  # ... and this much translation (or the rotation below; both 0 = none)
-    keyframe_min_rotation_deg: float = 0.0  # ... or this much rotation since it
-    loop_cooldown: int = 0              # after an accepted loop, this many keyframes skip the loop search
-    graph_max_corr_m: float | None = None  # pose-graph line-process distance (m); null = loops.max_correction_m
-    preference_loop_closure: float = 1.0  # open3d GlobalOptimizationOption.preference_loop_closure
-    edge_prune_threshold: float = 0.25  # open3d: loop edges with a line-process weight below this are pruned
-    edge_information: str = "isotropic"  # isotropic (ICP's, per block) | icp (open3d's, with cross terms)
-
-    @classmethod
-    def lidar(cls, **overrides) -> "FrontEndConfig":
-        """Street-LiDAR settings (OdometryConfig.lidar(), LoopConfig.lidar()); keywords override fields."""
-        base = dict(odometry=OdometryConfig.lidar(), loops=LoopConfig.lidar())
-        base.update(overrides)
-        return cls(**base)
 
 
 @dataclass(frozen=True)

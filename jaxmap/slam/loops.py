@@ -19,55 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from jaxmap.config.slam import LoopConfig
 from jaxmap.geometry import SE3, pose_change, se3_inverse
 from jaxmap.slam.odometry import icp, to_o3d
-
-
-@dataclass(frozen=True)
-class LoopConfig:
-    """Loop-closure parameters. Defaults suit the indoor depth camera; `LoopConfig.lidar()` the street LiDAR.
-
-    radius_m:           candidates are keyframes whose estimated position is within this distance (m)
-    min_gap:            ... and at least this many keyframes before the current one
-    max_candidates:     at most this many candidates are verified per keyframe (nearest first)
-    max_corr_m:         correspondence distance (m) of the first ICP stage; a second stage uses half.
-                        It must exceed the drift expected at the loop
-    fine_corr_m:        distance (m) of a last ICP stage that gives T_rel and its information; about
-                        2 voxels of the clouds (as OdometryConfig.max_corr_m): wider ones bias the result
-    min_fitness:        minimum overlap fraction, required both ways, at the second-stage distance
-    max_rmse_m:         maximum inlier RMSE (m) at the second-stage distance
-    max_correction_m, max_correction_deg: largest accepted ICP correction of the initial guess
-    min_constraint:     smallest accepted eigenvalue of the translation block of the point-to-plane
-                        normal matrix, per correspondence (0..1; 1/3 for evenly spread normals)
-    max_conflict:       largest accepted fraction of points in the other scan's free space (either way)
-    free_space_margin_m: a point is in free space when it is this much (+10 % of the range) in front of
-                        the nearest return of the other scan in its direction
-    free_space_res_deg: angular bin of the range images for the free-space test
-    max_iter:           ICP iterations per stage
-    """
-    radius_m: float = 1.0               # candidates: keyframes whose estimated position is within this distance (m)
-    min_gap: int = 10                   # ... and at least this many keyframes back
-    max_candidates: int = 3             # at most this many candidates verified per keyframe (nearest first)
-    max_corr_m: float = 0.3             # correspondence distance (m) of the first ICP stage; must exceed the drift at the loop
-    fine_corr_m: float = 0.06           # correspondence distance (m) of the last, fine ICP stage
-    min_fitness: float = 0.6            # minimum overlap fraction, required both ways
-    max_rmse_m: float = 0.06            # maximum inlier RMSE (m) of the fine stage
-    max_correction_m: float = 0.5       # largest accepted ICP correction of the initial guess (m)
-    max_correction_deg: float = 15.0    # largest accepted ICP correction of the initial guess (deg)
-    min_constraint: float = 0.005       # smallest eigenvalue of the point-to-plane translation block per correspondence
-    max_conflict: float = 0.03          # largest fraction of points in the other scan's free space (either way)
-    free_space_margin_m: float = 0.05   # a point is in free space this far (+10 % of range) in front of the other scan
-    free_space_res_deg: float = 1.0     # angular bin of the range images of the free-space test
-    max_iter: int = 40                  # ICP iterations per stage
-
-    @classmethod
-    def lidar(cls, **overrides) -> "LoopConfig":
-        """Street-LiDAR settings (0.3 m voxels, metres of drift over a block); keywords override them."""
-        base = dict(radius_m=10.0, min_gap=8, max_candidates=3, max_corr_m=2.0, fine_corr_m=0.6, min_fitness=0.6,
-                    max_rmse_m=0.5, max_correction_m=4.0, max_correction_deg=20.0, max_conflict=0.06,
-                    free_space_margin_m=0.3)
-        base.update(overrides)
-        return cls(**base)
 
 
 @dataclass(frozen=True)

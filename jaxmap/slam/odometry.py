@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from jaxmap.config import ConfigError
+from jaxmap.config.slam import ODOMETRY_METHODS
 from jaxmap.geometry import compose, orthonormalize, pose_change
 from jaxmap.slam.kiss import KissOdometry
 # The config, prepared scan, step result and open3d helpers live in odometry_common (KISS-ICP shares them);
@@ -165,7 +166,6 @@ class Odometry:
         self.pose = compose(T_corr, self.pose)
 
 
-ODOMETRY_METHODS = ("icp", "kiss_icp")
 
 
 def make_odometry(cfg: OdometryConfig | None = None, initial_pose: np.ndarray | None = None):

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from jaxmap.config.slam import OdometryConfig
 from jaxmap.preprocess import crop, estimate_normals, voxel_downsample
 
 
@@ -36,61 +37,6 @@ def to_o3d(points: np.ndarray, normals: np.ndarray | None = None):
     if normals is not None:
         pc.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
     return pc
-
-
-@dataclass(frozen=True)
-class OdometryConfig:
-    """Odometry parameters. Defaults suit the indoor depth camera (room: 0.2-10 m ranges, mm noise):
-    3 cm voxels and correspondences within 2 voxels. Measured on the 40-frame room with 5 mm noise:
-    3 cm / 6 cm gives 0.4 cm ATE at ~0.2 s per frame (2 CPU cores); 5 cm / 10 cm 0.8 cm at ~0.1 s;
-    a wider correspondence distance (3 voxels) is faster to converge but biased: 2x the drift.
-
-    For a street LiDAR (the city, 50 m range, cm noise) use `OdometryConfig.lidar()`: voxel 0.3 m,
-    correspondences within 0.6 m (1.5 m in the coarse stage), fitness >= 0.5, RMSE <= 0.4 m (the
-    point-to-point RMSE of a correct match of sparse beams is already ~0.25 m, so fitness is the real
-    test). On the small city (4.7 m between scans, 2 cm noise): 8.5 cm ATE over the 70 m loop; 0.2 m
-    voxels give 5 cm at twice the time; 0.2-0.5 m voxels are the sensible range for 32-64 beams.
-
-    method:         "icp": this module's frame-to-frame point-to-plane ICP (open3d), the default; "kiss_icp":
-                    KISS-ICP (Vizzo et al., RA-L 2023; `pip install kiss-icp`), point-to-point ICP against a
-                    voxel-hashed local map with an adaptive threshold (`jaxmap.slam.kiss`). Both give the
-                    same OdomStep; the scans kept for loop closure are prepared with the fields below either way
-    kiss_voxel_m:   kiss_icp only: voxel size of its local map (m); 0 = max_range_m / 100 as KISS-ICP does
-    voxel_m:        downsampling voxel (m) of the scans fed to ICP (and to the loop verification)
-    max_corr_m:     ICP correspondence distance of the fine stage (m); about 2 voxels
-    coarse_factor:  a first ICP stage runs with voxel and max_corr scaled by this (1 = single stage);  # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
-                    it widens the basin of convergence when the motion prior is off
-    retry_below_fitness: when ICP from the motion prior reaches a lower fitness, a global registration
-                    (FPFH + RANSAC, then ICP) is tried too and the better-fitting result kept; 0 disables.
-                    It rescues sharp turns and the first step, where constant velocity is a poor guess
-    min_fitness:    ICP result rejected below this fraction of matched source points
-    max_rmse_m:     ICP result rejected above this inlier RMSE (m)
-    max_iter:       ICP iterations per stage
-    normals_k:      neighbours for the PCA normals
-    min_points:     fewer downsampled points than this -> the frame is not registered
-    min_range_m, max_range_m: range crop of the input scan (m)
-    """
-    method: str = "icp"                 # "icp" (open3d point-to-plane, frame to frame) or "kiss_icp" (KISS-ICP, frame to local map)
-    kiss_voxel_m: float = 0.0           # kiss_icp: voxel (m) of its local map; 0 = max_range_m / 100 (KISS-ICP's default)
-    voxel_m: float = 0.03               # downsampling voxel (m) of the scans fed to ICP
-    max_corr_m: float = 0.06            # ICP correspondence distance of the fine stage (m); about 2 voxels
-    coarse_factor: float = 2.5          # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
-    retry_below_fitness: float = 0.8    # below this fitness a global registration (FPFH + RANSAC) is tried too; 0 = never
-    min_fitness: float = 0.5            # ICP rejected below this fraction of matched source points
-    max_rmse_m: float = 0.04            # ICP rejected above this inlier RMSE (m)
-    max_iter: int = 30                  # ICP iterations per stage
-    normals_k: int = 15                 # neighbours for the PCA normals
-    min_points: int = 100               # fewer downsampled points than this: the frame is not registered
-    min_range_m: float = 0.1            # range crop of the input scan (m), near
-    max_range_m: float = 10.0           # range crop of the input scan (m), far
-
-    @classmethod
-    def lidar(cls, **overrides) -> "OdometryConfig":
-        """Settings for a street LiDAR (see the class docstring); keyword arguments override them."""
-        base = dict(voxel_m=0.3, max_corr_m=0.6, coarse_factor=2.5, retry_below_fitness=0.8, min_fitness=0.5,
-                    max_rmse_m=0.4, normals_k=15, min_range_m=2.0, max_range_m=50.0)
-        base.update(overrides)
-        return cls(**base)
 
 
 def prepare_scan(points_s: np.ndarray, cfg: OdometryConfig, voxel_m: float | None = None, crop_range: bool = True):

@@ -29,57 +29,20 @@ import logging
 import os
 import re
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
-from jaxmap.config import (DataConfig, EvalConfig, ImtConfig, LatentMapConfig, LatentMeshConfig, MapConfig,
-                           PreprocessConfig, load_config, save_config)
+from jaxmap.config import MapConfig, SlamConfig, load_config, save_config
 from jaxmap.errors import DataError, JaxmapError
 from jaxmap.frame_loop import (Frame, LoopResult, Prefetcher, Progress, finish_run, open_run_sequence, open_viewer,
                                run_frames)
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.mapper import N3Mapper
-from jaxmap.slam.frontend import FrontEnd, FrontEndConfig
+from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_tum
 
 log = logging.getLogger("jaxmap")
-
-
-def _register_rules() -> None:
-    """Value rules of the front end's config keys, checked at load (see `jaxmap.config.RULES`)."""
-    from jaxmap.config.rules import at_least, host_preprocess_checks, one_of, register_rules
-    from jaxmap.slam.frontend import EDGE_INFORMATION
-    from jaxmap.slam.odometry import ODOMETRY_METHODS, OdometryConfig
-
-    register_rules(OdometryConfig, method=one_of(*ODOMETRY_METHODS), max_iter=at_least(1), normals_k=at_least(3))
-    register_rules(FrontEndConfig, edge_information=one_of(*EDGE_INFORMATION))
-    register_rules(SlamConfig, checks=[host_preprocess_checks])
-
-
-@dataclass(frozen=True)
-class SlamConfig:
-    """Root config of `jaxmap slam` (front end + transformable latent map)."""
-
-    data: DataConfig = field(default_factory=lambda: ImtConfig().data)
-    preprocess: PreprocessConfig = field(default_factory=lambda: ImtConfig().preprocess)
-    map: LatentMapConfig = field(default_factory=LatentMapConfig)
-    mesh: LatentMeshConfig = field(default_factory=LatentMeshConfig)
-    eval: EvalConfig = field(default_factory=lambda: ImtConfig().eval)
-    frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
-    external_poses: str = ""          # directory of pose snapshots replacing the front end ("" = our own)
-    mesh_at_loops: bool = False       # write meshes before and after each loop closure (a whole-map mesh each: slow)
-    n3_config: str = ""               # also build an N3 map from the optimised poses with this config
-    output: str = "runs/slam"           # run directory (`--out` overrides it)
-    progress: bool = True             # tqdm progress bar
-
-    def imt(self) -> ImtConfig:
-        return ImtConfig(data=self.data, preprocess=self.preprocess, map=self.map, mesh=self.mesh, eval=self.eval,
-                         output=self.output, progress=self.progress)
-
-
-_register_rules()
 
 
 class FrontEndStep:
