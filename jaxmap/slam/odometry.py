@@ -10,7 +10,6 @@ open3d is imported inside the functions, so `import jaxmap` (and the mapping cor
 from __future__ import annotations
 
 import logging
-import sys
 import time
 from dataclasses import dataclass
 
@@ -18,6 +17,7 @@ import numpy as np
 
 from jaxmap.config import ConfigError
 from jaxmap.config.slam import ODOMETRY_METHODS
+from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
 from jaxmap.geometry import compose, orthonormalize, pose_change
 from jaxmap.slam.kiss import KissOdometry
 # The config, prepared scan, step result and open3d helpers live in odometry_common (KISS-ICP shares them);
@@ -188,18 +188,13 @@ def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tup
     Returns (poses [N,4,4] float64, median seconds per frame after the first)."""
     odo = make_odometry(cfg, np.asarray(seq.poses[0], dtype=np.float64))
     poses, times = [], []
-    bar = None
-    if progress:
-        from tqdm import tqdm
 
-        bar = tqdm(total=len(seq), unit="frame", desc=f"odometry ({cfg.method})", file=sys.stderr)
-    for i in range(len(seq)):
-        pts = seq.frame(i).points
+    def step(frame: Frame):
         t0 = time.perf_counter()
-        poses.append(odo.step(pts).pose)
+        poses.append(odo.step(frame.points).pose)
         times.append(time.perf_counter() - t0)
-        if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+        return {}, poses[-1]
+
+    run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
+               progress=Progress(f"odometry ({cfg.method})", progress))
     return np.stack(poses), float(np.median(times[1:])) if len(times) > 1 else float(times[0])
