@@ -12,7 +12,7 @@ import optax
 from analytic_lidar import corridor_scan, pose_at
 from jaxmap.config import load_config
 from jaxmap.grid import features as gfeat
-from jaxmap.n3 import adam, core, field, scan, window
+from jaxmap.n3 import adam, core, field, frame, scan, window
 from jaxmap.n3.decoder import init_decoder
 from jaxmap.n3.mapper import N3Mapper
 
@@ -222,10 +222,10 @@ def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
         def lower(self, static, state, batch):
             return types.SimpleNamespace(compile=lambda: compiled.append(state) or (lambda *a: state))
 
-    monkeypatch.setattr(core, "step", Step())
+    monkeypatch.setattr(frame, "step", Step())
     monkeypatch.setattr(core.Capacities, "of", staticmethod(lambda state: state))
-    monkeypatch.setattr(core, "_EXECUTABLES", collections.OrderedDict())
-    monkeypatch.setattr(core, "COMPILE_SECONDS", [])
+    monkeypatch.setattr(frame, "EXECUTABLES", collections.OrderedDict())
+    monkeypatch.setattr(frame, "COMPILE_SECONDS", [])
     batch = types.SimpleNamespace(points=np.zeros((8, 3)))
     n = core.EXECUTABLES_KEPT
     assert 2 <= n <= 8  # a few programs for a process that maps again, not hundreds of thousands of maps
@@ -233,7 +233,7 @@ def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
         assert core.compiled_step("static", caps, batch)() == caps
     assert core.compiled_step("static", 0, batch)() == 0 and compiled == list(range(n))  # a hit
     core.compiled_step("static", n, batch)  # one more: the least recently used (1, not 0) goes
-    assert list(core._EXECUTABLES) == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
+    assert list(frame.EXECUTABLES) == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
     core.compiled_step("static", 1, batch)
     assert compiled == [*range(n + 1), 1]
 

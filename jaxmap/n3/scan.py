@@ -12,12 +12,11 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import validate_pose
-from jaxmap.n3.core import RawScan, ScanBatch
+from jaxmap.n3.scan_batch import RawScan, ScanBatch
 from jaxmap.preprocess import preprocess_scan
+from jaxmap.sizes import bucket_for  # noqa: F401  (re-exported: the frame loops pad with scan.bucket_for)
 
 log = logging.getLogger("jaxmap")
-
-BUCKET_STEP = 4096  # scan sizes are padded to multiples of this (static shapes: one compile)
 
 
 def clean_points(points_s, frame: int) -> np.ndarray:
@@ -55,14 +54,6 @@ def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket:
     out[:n] = points_s
     return RawScan(out, np.arange(bucket) < n, pose[:3, :3].astype(np.float32),
                    (pose[:3, 3] - origin_w).astype(np.float32))
-
-
-def bucket_for(n: int, current: int = 0) -> int:
-    """Padded scan size: the current bucket while n fits, else 1.25 n rounded up to BUCKET_STEP
-    (a new bucket recompiles the frame program, so it leaves room for the next scans)."""
-    if 0 < n <= current:
-        return current
-    return int(np.ceil(max(1.25 * n, 1) / BUCKET_STEP) * BUCKET_STEP)
 
 
 def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray,

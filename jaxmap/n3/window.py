@@ -24,7 +24,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmap.grid.hashing import nonzero_fixed, prefix_sum
+from jaxmap.grid.compaction import nonzero_fixed, prefix_sum
 
 BLOCK_POLICIES = ("reservoir", "ring")
 CARVE_RULES = ("replace", "raise")
