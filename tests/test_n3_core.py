@@ -125,8 +125,13 @@ def test_sparse_adam_rows_first_touched_late_step_like_a_fresh_dense_adam():
     rng = np.random.default_rng(4)
     r, d, lr = 16, 3, 0.01
     init = jnp.asarray(rng.normal(size=(r, d)), jnp.float32)
-    opt = adam.sparse_adam()
-    update = jax.jit(opt.update)
+    opt = adam.sparse_adam(lr)
+
+    @jax.jit
+    def update(table, st, rows, g):
+        upd, st = opt.update(adam.SparseGrads(rows, g), st, table)
+        return adam.apply_updates(table, upd), st
+
     table, st = init, opt.init(init)
     tx = optax.adam(lr)
     dense_step = jax.jit(lambda g, s, p: tx.update(g, s, p))
@@ -139,7 +144,7 @@ def test_sparse_adam_rows_first_touched_late_step_like_a_fresh_dense_adam():
         rows = np.concatenate([touched, rng.choice(touched, 6), [-1, -1]]).astype(np.int32)  # duplicates, padding
         g = rng.normal(size=(len(rows), d)).astype(np.float32)
         before = np.asarray(table)[late]
-        table, st = update(table, st, jnp.asarray(rows), jnp.asarray(g), lr)
+        table, st = update(table, st, jnp.asarray(rows), jnp.asarray(g))
         if step == 1000:
             first_late_step = np.abs(np.asarray(table)[late] - before)
         gd = np.zeros((r, d), np.float32)

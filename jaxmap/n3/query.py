@@ -13,7 +13,7 @@ import numpy as np
 from jaxmap.config import ConfigError
 from jaxmap.grid.features import query_features
 from jaxmap.mesh import extract_mesh
-from jaxmap.n3.field import mlp
+from jaxmap.n3.decoder import decode
 from jaxmap.n3.loss import sdf_and_grad
 from jaxmap.n3.state import N3State, N3Static, origin_world
 
@@ -32,7 +32,7 @@ def query(static: N3Static, state: N3State, points_m):
     ml = static.mask_level
     valid = jnp.all(rows[:, ml * 8:(ml + 1) * 8] >= 0, axis=1)                     # rows: [N, L*8]
     valid &= jnp.sum(rows[:, :8] >= 0, axis=1) >= static.min_leaf_corners
-    return jax.vmap(mlp, in_axes=(None, 0))(state.decoder, f), valid
+    return jax.vmap(decode, in_axes=(None, 0))(state.decoder, f), valid
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -123,7 +123,7 @@ class N3State:
     feature_table: jax.Array               # [R, D] float32 corner features
     feature_opt: adam.SparseAdamState      # sparse Adam moments of feature_table
     decoder: dict                          # flax params of the SDF decoder
-    decoder_opt: optax.ScaleByAdamState    # Adam moments of the decoder
+    decoder_opt: optax.ScaleByAdamState    # Adam moments of the decoder (optax.adam's state, less its empty lr part)
     store: window.PairStore                # voxel-oriented training pairs and the current window
     pool: pool.PairPool | None             # flat pool of pairs (replay / keyframe ablations), else None
     origin_vox: jax.Array                  # [3] int32: map origin in leaf voxels (world = map + origin)
@@ -187,7 +187,7 @@ def init_state(static: N3Static, cfg, caps: Capacities) -> N3State:
         voxel_corner_rows=jnp.full((caps.voxel_rows, static.corners_per_voxel), -1, jnp.int32),
         voxels_with_corners=jnp.zeros((), jnp.int32),
         feature_table=table,
-        feature_opt=adam.sparse_adam().init(table),
+        feature_opt=adam.sparse_adam(t.lr).init(table),
         decoder=dec,
         decoder_opt=optax.scale_by_adam().init(dec),
         store=window.create(caps.store_blocks, caps.pairs_per_block, caps.voxel_rows),

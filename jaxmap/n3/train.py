@@ -32,8 +32,9 @@ def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, 
     active = jnp.asarray(active, bool)
     store, h = state.store, state.hyper
     ids, n = store.window_ids, store.window_n
-    opt = adam.sparse_adam()
-    dec_tx = optax.scale_by_adam()
+    # Both optimisers are `optax.adam(lr)`: updates to add, the learning rate included.
+    opt = adam.sparse_adam(h.lr)
+    dec_tx = optax.adam(h.lr)
     train_decoder = active & (state.frame < static.freeze_after_frame)
     feature_opt = state.feature_opt
     if static.reset_adam:  # the original N3 code rebuilds its optimiser every frame
@@ -65,9 +66,11 @@ def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, 
         feats = table[jnp.maximum(rows, 0)]                                              # [G, L*8, D]
         (loss, (l_bce, l_eik)), (g_feat, g_dec) = loss_grad(feats, dec, b, b.coords, h.beta,
                                                              h.weight_e)
-        table, f_opt = opt.update(table, f_opt, rows.reshape(-1), g_feat.reshape(-1, table.shape[-1]), h.lr)
-        upd, d_opt_new = dec_tx.update(g_dec, d_opt, dec)
-        dec_new = jax.tree_util.tree_map(lambda p, u: p - h.lr * u, dec, upd)
+        upd, f_opt = opt.update(adam.SparseGrads(rows.reshape(-1), g_feat.reshape(-1, table.shape[-1])), f_opt)
+        table = adam.apply_updates(table, upd)
+        # The decoder's state is optax.adam's first part (scale_by_adam); its learning-rate part has none.
+        upd, (d_opt_new, _) = dec_tx.update(g_dec, (d_opt, optax.EmptyState()), dec)
+        dec_new = optax.apply_updates(dec, upd)
         dec, d_opt = jax.tree_util.tree_map(lambda a, b: jnp.where(train_decoder, a, b), (dec_new, d_opt_new),
                                             (dec, d_opt))
         return table, f_opt, dec, d_opt, key, acc + jnp.stack([loss, l_bce, l_eik])
