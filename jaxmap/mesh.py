@@ -278,11 +278,25 @@ def extract_mesh(
       trimesh.Trimesh in world coordinates (float64 vertices), faces oriented towards positive sdf;
       empty when there are no cells or no zero crossing.
     """
-    import trimesh
-
     cells = np.asarray(cells)
     if cells.size == 0:
         return _empty_mesh()
+    cells, r, chunk_cells = _checked_lattice(cells, cell_size, resolution, chunk_cells, max_points_per_call)
+    origin = np.asarray(origin, dtype=np.float64).reshape(3)
+    all_verts, all_faces = _mesh_bricks(sdf_fn, cells, chunk_cells, r, origin, resolution, max_points_per_call)
+    if not all_faces:
+        return _empty_mesh()
+    verts = np.concatenate(all_verts, axis=0)
+    faces = np.concatenate(all_faces, axis=0)
+    verts, faces = _merge_border_vertices(verts, faces, chunk_cells * r)
+    faces = _drop_small_components(faces, len(verts), int(min_component_faces))
+    if len(faces) == 0:
+        return _empty_mesh()
+    return _trimesh_of(verts, faces, origin, resolution)
+
+
+def _checked_lattice(cells: np.ndarray, cell_size: float, resolution: float, chunk_cells, max_points_per_call: int):
+    """`extract_mesh`'s arguments checked: (cells [M,3] int64, lattice intervals per cell, cells per brick side)."""
     if cells.ndim != 2 or cells.shape[1] != 3:
         raise ValueError(f"cells must have shape [M,3], got {cells.shape}")
     if not np.issubdtype(cells.dtype, np.integer):
@@ -300,14 +314,18 @@ def extract_mesh(
         )
     if max_points_per_call < 1:
         raise ValueError("max_points_per_call must be >= 1")
-    origin = np.asarray(origin, dtype=np.float64).reshape(3)
     if chunk_cells is None:
         chunk_cells = max(1, _DEFAULT_BRICK_SAMPLES // r)
     chunk_cells = int(chunk_cells)
     if chunk_cells < 1:
         raise ValueError("chunk_cells must be >= 1")
-    n = chunk_cells * r  # lattice intervals per brick side
+    return cells, r, chunk_cells
 
+
+def _mesh_bricks(sdf_fn: SdfFn, cells, chunk_cells: int, r: int, origin, resolution: float,
+                 max_points_per_call: int) -> tuple[list, list]:
+    """Marching cubes brick by brick, the samples of several bricks evaluated in one batch.
+    Returns (vertex arrays [V_i,3] lattice coordinates, face arrays [F_i,3] into their concatenation)."""
     cells = _unique_rows(cells)
     bcoord = np.floor_divide(cells, chunk_cells)
     local = cells - bcoord * chunk_cells
@@ -352,15 +370,13 @@ def extract_mesh(
         if group_size >= max_points_per_call:
             flush()
     flush()
+    return all_verts, all_faces
 
-    if not all_faces:
-        return _empty_mesh()
-    verts = np.concatenate(all_verts, axis=0)
-    faces = np.concatenate(all_faces, axis=0)
-    verts, faces = _merge_border_vertices(verts, faces, n)
-    faces = _drop_small_components(faces, len(verts), int(min_component_faces))
-    if len(faces) == 0:
-        return _empty_mesh()
+
+def _trimesh_of(verts: np.ndarray, faces: np.ndarray, origin, resolution: float):
+    """trimesh.Trimesh in world coordinates of the vertices [V,3] (lattice) that faces [F,3] use."""
+    import trimesh
+
     used = np.unique(faces)
     remap = np.full(len(verts), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))

@@ -284,7 +284,6 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
     Returns: dict(voxels, frames, points, seconds, integrate_seconds, mesh_seconds, faces, vertices, mesh,
     voxel_m, trunc_m, mesh_res_m), also logged.
     """
-    from jaxmap.geometry import transform_points
     from jaxmap.io import open_sequence
     from jaxmap.mesh import save_mesh
 
@@ -299,21 +298,7 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
     seq = open_sequence(data_dir, begin_frame=begin_frame, end_frame=end_frame, every_frame=every_frame)
     vol = TSDFVolume(voxel_m, trunc_m, dropoff=dropoff)
     t0 = time.perf_counter()
-    frames = seq
-    if progress:
-        from tqdm import tqdm
-
-        frames = tqdm(seq, total=len(seq), desc=f"tsdf {voxel_m:g} m", unit="frame")
-    n_frames = 0
-    n_points = 0
-    for frame in frames:
-        pts = np.asarray(frame.points, dtype=np.float64)
-        r = np.linalg.norm(pts, axis=1)
-        pts = pts[(r >= min_range_m) & (r <= max_range_m)]
-        pose = np.asarray(frame.pose, dtype=np.float64)
-        vol.integrate(transform_points(pose, pts), pose[:3, 3])
-        n_frames += 1
-        n_points += len(pts)
+    n_frames, n_points = _fuse(vol, seq, min_range_m, max_range_m, f"tsdf {voxel_m:g} m" if progress else None)
     vol.compact()
     t1 = time.perf_counter()
     mesh = vol.mesh(res, min_component_faces=min_component_faces)
@@ -328,3 +313,26 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
     }
     log.info("tsdf: %s", info)
     return info
+
+
+def _fuse(vol: TSDFVolume, seq, min_range_m: float, max_range_m: float, progress: str | None) -> tuple[int, int]:
+    """Integrate every frame of seq, its points cropped to [min_range_m, max_range_m] from the sensor.
+    progress: the tqdm bar's label (None: no bar). Returns (frames, points integrated)."""
+    from jaxmap.geometry import transform_points
+
+    frames = seq
+    if progress:
+        from tqdm import tqdm
+
+        frames = tqdm(seq, total=len(seq), desc=progress, unit="frame")
+    n_frames = 0
+    n_points = 0
+    for frame in frames:
+        pts = np.asarray(frame.points, dtype=np.float64)
+        r = np.linalg.norm(pts, axis=1)
+        pts = pts[(r >= min_range_m) & (r <= max_range_m)]
+        pose = np.asarray(frame.pose, dtype=np.float64)
+        vol.integrate(transform_points(pose, pts), pose[:3, 3])
+        n_frames += 1
+        n_points += len(pts)
+    return n_frames, n_points
