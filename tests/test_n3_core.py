@@ -453,10 +453,10 @@ def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
         same(state, m.state)
     # a checkpoint of earlier versions (an orbax tree under state/) is still read, to the same state
     from jaxmap.checkpoint import save_tree
-    from jaxmap.n3.checkpoint import _meta, compact
+    from jaxmap.n3.checkpoint import meta_of, compact
 
     assert (tmp_path / "a" / "3" / "arrays").is_dir() and not (tmp_path / "a" / "3" / "state").exists()
-    save_tree(str(tmp_path / "o"), compact(m.state), _meta(m.cfg, m.state, m.timings), step=3)
+    save_tree(str(tmp_path / "o"), compact(m.state), meta_of(m.cfg, m.state, m.timings), step=3)
     _, state, _ = load_state(str(tmp_path / "o"))
     same(state, m.state)
     # an empty map round-trips too
