@@ -31,6 +31,7 @@ import shutil
 from typing import Callable, Iterable, TypeVar
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.errors import CheckpointError, NoCheckpointError
@@ -253,3 +254,38 @@ def _read_arrays(root: str) -> dict:
         except (OSError, ValueError) as e:
             raise CheckpointError(f"{os.path.join(root, rel)}: unreadable ({e})") from None
     return tree
+
+
+# ---------------------------------------------------------------------------------------------
+# a state's leaves on the host, one at a time
+# ---------------------------------------------------------------------------------------------
+
+
+def in_host_memory(x) -> bool:
+    """Is `x` a numpy array or a jax array held in host memory (the CPU backend)?"""
+    devices = getattr(x, "devices", None)
+    return devices is None or all(d.platform == "cpu" for d in devices())
+
+
+def host_array(x, rows=None, copy: bool = True) -> np.ndarray:
+    """`x`, or its `rows` (a slice or an index array; None = all), as a host array.
+
+    In host memory the rows are read straight out of a view of the buffer; elsewhere they are sliced
+    or gathered on the device first, so only the used rows cross to the host (a full `device_get`
+    would copy the whole capacity). Slicing on the CPU device too would hold the used rows twice
+    (2 GB more at the end of the long drive). `copy`: an own copy, needed when the state's buffers
+    may change before the array is written (the next frame's donated step overwrites them while a
+    background save writes); without it, a slice of a host buffer is a view of it."""
+    if rows is None:  # a scalar or a decoder leaf: small, always an own copy
+        return np.array(x)
+    if in_host_memory(x):
+        v = np.asarray(x)[rows]
+        return np.array(v) if copy and isinstance(rows, slice) else v  # an index array gathers a new array
+    return np.array(x[jnp.asarray(rows) if isinstance(rows, np.ndarray) else rows])
+
+
+def named_leaves(tree) -> list[tuple[str, object]]:
+    """(name, leaf) of a tree of nested dicts, "a/b" naming tree["a"]["b"] (as `read_tree` nests them);
+    callables are leaves (functions that fetch a leaf when it is written, see `save_arrays`)."""
+    flat, _ = jax.tree_util.tree_flatten_with_path(tree, is_leaf=callable)
+    return [("/".join(str(k.key) for k in path), x) for path, x in flat]

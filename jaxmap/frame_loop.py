@@ -1,20 +1,20 @@
-"""The one frame loop and the one finisher of every run: `jaxmap map`, `imt`, `slam` and the benches.
+"""The one frame loop of every run: `jaxmap map`, `imt`, `slam` and the benches.
 
     frames = Prefetcher(seq, start, len(seq), load)          # read (and prepare) ahead in a thread
     loop = run_frames(frames, step, total=len(seq), ...)     # progress, viewer, checkpoints, Ctrl-C, wall
-    summary = finish_run(mapper, cfg, out_dir, loop)         # mesh.ply, metrics.json, timing.json
+    summary = jaxmap.finish.finish_run(mapper, cfg, out_dir, loop)   # mesh.ply, metrics.json, timing.json
 
 A run is a `Mapper` (N3's `N3Mapper`, the transformable map's `ImtMapper`) fed frame by frame by a
 `step`: a function of one `Frame` that maps it and returns its record (timings, sizes) and the pose it
 was mapped at. The step is all that differs between runs (a mapper's `add_frame`, or a SLAM front end
 that estimates the pose first and closes loops); reading ahead, the progress bar, the live viewer,
-checkpoints every N frames and on Ctrl-C / SIGTERM, and the run's wall-clock time live here once.
+checkpoints every N frames and on Ctrl-C / SIGTERM, and the run's wall-clock time live here once; what a
+run leaves (mesh, metrics, timings) is written by the one finisher, `jaxmap.finish.finish_run`.
 """
 from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
-import json
 import logging
 import os
 import signal
@@ -26,9 +26,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from jaxmap.hostmem import peak_rss_mb
 from jaxmap.io import open_sequence
-from jaxmap.metrics import evaluate_mesh_file
 from jaxmap.rundir import interrupt_requests
 from jaxmap.viewer import attach_viewer, to_world
 
@@ -239,74 +237,11 @@ def _interrupted(e: KeyboardInterrupt, forced: bool, checkpoints: Checkpoints | 
     print(f"\n{what}: checkpoint of {frames} frames saved in {checkpoints.path}{go_on}", file=sys.stderr)
 
 
-# ------------------------------------------------------------------------------------------------
-# the finisher: mesh, metrics, timing
-# ------------------------------------------------------------------------------------------------
-
-
-def finish_run(mapper: Mapper, cfg, out_dir: str, loop: LoopResult | None = None, *, evaluate: bool = True,
-               mesh: bool = True, extra: dict | None = None, viewer=None) -> dict:
-    """Mesh (`out_dir/mesh.ply`), metrics against the sequence's ground truth (`metrics.json`, when it
-    has gt_points.ply) and timings (`timing.json`) of a mapped run; returns the run's summary.
-    mesh=False: timings only. The viewer, if any, shows the final mesh and is closed."""
-    out = (mesh_and_metrics(mapper, cfg, out_dir, evaluate=evaluate) if mesh
-           else {"mesh": None, "faces": 0, "mesh_s": 0.0})
-    summ = dict(mapper.timing_summary())
-    if loop is not None and loop.frames_run:
-        summ.update({"wall_s": loop.wall_s, "wall_s_per_frame": loop.wall_s / loop.frames_run,
-                     "frames_run": loop.frames_run})
-    summ.update(extra or {})
-    with open(os.path.join(out_dir, "timing.json"), "w") as f:
-        json.dump({"frames": mapper.timings, "summary": summ, "mesh_s": out["mesh_s"]}, f)
-    if "metrics" in out:
-        with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-            json.dump(out["metrics"], f)
-    summary = {"run": out_dir, **out, **summ, "peak_rss_mb": peak_rss_mb()}
-    if viewer is not None:
-        close_viewer(viewer, out["mesh"], out_dir)
-    return summary
-
-
-def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", evaluate: bool = True,
-                     floor: bool = True) -> dict:
-    """Write the map's mesh to `out_dir/name`; its metrics against the ground truth of the run's data
-    when `evaluate` and the data has gt_points.ply (with the protocol's floor unless floor=False).
-    Returns {"mesh": path, "faces", "mesh_s", "metrics"?}."""
-    t0 = time.perf_counter()
-    m = mapper.mesh()
-    path = os.path.join(out_dir, name)
-    m.export(path)
-    out = {"mesh": path, "faces": int(len(m.faces)), "mesh_s": time.perf_counter() - t0}
-    if not (evaluate and has_ground_truth(cfg.data.path)):
-        return out
-    if out["faces"] == 0:
-        log.warning("the mesh %s is empty (too few frames or iterations?): no metrics", path)
-        return out
-    out["metrics"] = evaluate_run_mesh(path, cfg, floor=floor)
-    return out
-
-
 def open_run_sequence(cfg):
     """The frames a run's config selects (`cfg.data`: path, kind, begin / end / every frame, topic)."""
     d = cfg.data
     return open_sequence(d.path, kind=d.kind, begin_frame=d.begin_frame, end_frame=d.end_frame,
                          every_frame=d.every_frame, topic=d.topic)
-
-
-def has_ground_truth(data_path: str) -> bool:
-    """The data has gt_points.ply: in its directory, or beside its file (a ROS bag, a LAS file)."""
-    here = data_path if os.path.isdir(data_path) else os.path.dirname(os.path.abspath(data_path))
-    return os.path.isfile(os.path.join(here, "gt_points.ply"))
-
-
-def evaluate_run_mesh(mesh_path: str, cfg, floor: bool = True) -> dict:
-    """The standard protocol's metrics of a mesh against the ground truth of the run's data, culled to
-    exactly the frames and range the run mapped (`jaxmap.metrics.evaluate_mesh_file`)."""
-    d, p, e = cfg.data, cfg.preprocess, cfg.eval
-    return evaluate_mesh_file(mesh_path, d.path, threshold_m=e.threshold_m, cull_distance_m=e.cull_distance_m,
-                              eval_radius_m=e.eval_radius_m, n_samples=e.n_samples, begin_frame=d.begin_frame,
-                              end_frame=d.end_frame, every_frame=d.every_frame, min_range_m=p.min_range_m,
-                              max_range_m=p.max_range_m, floor=floor)
 
 
 def medians(timings: list[dict], keys: Iterable[str], skip_first: int = 1) -> dict:

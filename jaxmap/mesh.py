@@ -44,13 +44,13 @@ from typing import Callable
 import numpy as np
 
 from jaxmap.errors import DataError
+from jaxmap.grid.features import CORNER_OFFSETS
+from jaxmap.sizes import pow2_bucket
 
 log = logging.getLogger(__name__)
 
 SdfFn = Callable[[np.ndarray], "tuple[np.ndarray, np.ndarray] | np.ndarray"]
 
-# Corner offsets of a marching-cubes cube, in lattice units.
-_CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int64)
 # Two vertices closer than this (in lattice units) are the same vertex. Vertices that a brick border
 # shares are computed by two marching-cubes calls and agree to float32 rounding (~1e-5 lattice units
 # for bricks of <= 256 samples); distinct vertices of a brick are never this close unless they sit on
@@ -80,14 +80,6 @@ def _empty_mesh():
     return trimesh.Trimesh(vertices=np.zeros((0, 3)), faces=np.zeros((0, 3), dtype=np.int64), process=False)
 
 
-def _bucket(n: int, cap: int) -> int:
-    """Smallest power of two >= n, at least _MIN_BUCKET, at most cap (cap itself if n > cap)."""
-    b = _MIN_BUCKET
-    while b < n:
-        b <<= 1
-    return min(b, cap)
-
-
 def _call_sdf(sdf_fn: SdfFn, points: np.ndarray, max_points_per_call: int) -> tuple[np.ndarray, np.ndarray]:
     """Evaluate sdf_fn on points [K,3] float32 in padded batches; returns (sdf [K] float32, valid [K] bool).
 
@@ -101,7 +93,7 @@ def _call_sdf(sdf_fn: SdfFn, points: np.ndarray, max_points_per_call: int) -> tu
     while start < k:
         stop = min(start + max_points_per_call, k)
         batch = points[start:stop]
-        size = _bucket(stop - start, max_points_per_call)
+        size = pow2_bucket(stop - start, _MIN_BUCKET, max_points_per_call)
         if size > len(batch):
             pad = np.repeat(batch[-1:], size - len(batch), axis=0)
             batch = np.concatenate([batch, pad], axis=0)
@@ -142,7 +134,7 @@ def _prepare_brick(brick_coord, local_cells, chunk_cells: int, r: int) -> _Brick
     if r > 1:
         cube_occ = occ.repeat(r, axis=0).repeat(r, axis=1).repeat(r, axis=2)
     need = np.zeros((n + 1,) * 3, dtype=bool)
-    for dx, dy, dz in _CORNERS:
+    for dx, dy, dz in CORNER_OFFSETS:  # a marching-cubes cube's corners, in lattice units
         need[dx:dx + n, dy:dy + n, dz:dz + n] |= cube_occ
     return _Brick(np.asarray(brick_coord, dtype=np.int64) * n, cube_occ, need)
 
@@ -161,7 +153,7 @@ def _mesh_brick(br: _Brick, sdf: np.ndarray, valid: np.ndarray):
     if vmin > 0.0 or vmax < 0.0:
         return None  # no zero crossing among valid samples
     cube_ok = br.cube_occ.copy()
-    for dx, dy, dz in _CORNERS:
+    for dx, dy, dz in CORNER_OFFSETS:  # a marching-cubes cube's corners, in lattice units
         cube_ok &= vol_valid[dx:dx + n, dy:dy + n, dz:dz + n]
     if not cube_ok.any():
         return None
@@ -286,11 +278,25 @@ def extract_mesh(
       trimesh.Trimesh in world coordinates (float64 vertices), faces oriented towards positive sdf;
       empty when there are no cells or no zero crossing.
     """
-    import trimesh
-
     cells = np.asarray(cells)
     if cells.size == 0:
         return _empty_mesh()
+    cells, r, chunk_cells = _checked_lattice(cells, cell_size, resolution, chunk_cells, max_points_per_call)
+    origin = np.asarray(origin, dtype=np.float64).reshape(3)
+    all_verts, all_faces = _mesh_bricks(sdf_fn, cells, chunk_cells, r, origin, resolution, max_points_per_call)
+    if not all_faces:
+        return _empty_mesh()
+    verts = np.concatenate(all_verts, axis=0)
+    faces = np.concatenate(all_faces, axis=0)
+    verts, faces = _merge_border_vertices(verts, faces, chunk_cells * r)
+    faces = _drop_small_components(faces, len(verts), int(min_component_faces))
+    if len(faces) == 0:
+        return _empty_mesh()
+    return _trimesh_of(verts, faces, origin, resolution)
+
+
+def _checked_lattice(cells: np.ndarray, cell_size: float, resolution: float, chunk_cells, max_points_per_call: int):
+    """`extract_mesh`'s arguments checked: (cells [M,3] int64, lattice intervals per cell, cells per brick side)."""
     if cells.ndim != 2 or cells.shape[1] != 3:
         raise ValueError(f"cells must have shape [M,3], got {cells.shape}")
     if not np.issubdtype(cells.dtype, np.integer):
@@ -308,14 +314,18 @@ def extract_mesh(
         )
     if max_points_per_call < 1:
         raise ValueError("max_points_per_call must be >= 1")
-    origin = np.asarray(origin, dtype=np.float64).reshape(3)
     if chunk_cells is None:
         chunk_cells = max(1, _DEFAULT_BRICK_SAMPLES // r)
     chunk_cells = int(chunk_cells)
     if chunk_cells < 1:
         raise ValueError("chunk_cells must be >= 1")
-    n = chunk_cells * r  # lattice intervals per brick side
+    return cells, r, chunk_cells
 
+
+def _mesh_bricks(sdf_fn: SdfFn, cells, chunk_cells: int, r: int, origin, resolution: float,
+                 max_points_per_call: int) -> tuple[list, list]:
+    """Marching cubes brick by brick, the samples of several bricks evaluated in one batch.
+    Returns (vertex arrays [V_i,3] lattice coordinates, face arrays [F_i,3] into their concatenation)."""
     cells = _unique_rows(cells)
     bcoord = np.floor_divide(cells, chunk_cells)
     local = cells - bcoord * chunk_cells
@@ -360,15 +370,13 @@ def extract_mesh(
         if group_size >= max_points_per_call:
             flush()
     flush()
+    return all_verts, all_faces
 
-    if not all_faces:
-        return _empty_mesh()
-    verts = np.concatenate(all_verts, axis=0)
-    faces = np.concatenate(all_faces, axis=0)
-    verts, faces = _merge_border_vertices(verts, faces, n)
-    faces = _drop_small_components(faces, len(verts), int(min_component_faces))
-    if len(faces) == 0:
-        return _empty_mesh()
+
+def _trimesh_of(verts: np.ndarray, faces: np.ndarray, origin, resolution: float):
+    """trimesh.Trimesh in world coordinates of the vertices [V,3] (lattice) that faces [F,3] use."""
+    import trimesh
+
     used = np.unique(faces)
     remap = np.full(len(verts), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))

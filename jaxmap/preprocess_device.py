@@ -21,11 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from jaxmap.grid.hashing import nonzero_fixed
+from jaxmap.grid.compaction import nonzero_fixed
+from jaxmap.grid.features import CORNER_OFFSETS
 from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span
 
 INT_MAX = jnp.iinfo(jnp.int32).max
-_OFFSETS = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], np.int32)   # [8, 3]
 
 
 def crop_mask(points, valid, *, min_range: float, max_range: float, min_z: float, max_z: float):
@@ -94,7 +94,7 @@ def _cube_moments(points, ukey, moments, c: float, span: int):
     tot = jnp.zeros(points.shape[:1] + (10,), jnp.float32)
     cells = []
     last = ukey.shape[0] - 1
-    for oc in _OFFSETS:
+    for oc in CORNER_OFFSETS:
         key = _cell_key(base + oc, span)
         if oc[2] == 0:
             # One binary search per column of the cube: cell z + 1 has key + 1, so it is the next

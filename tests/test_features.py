@@ -42,15 +42,16 @@ field_grad = jax.jit(jax.grad(lambda *a: _field(*a).sum()), static_argnums=3)
 
 
 def allocate(vox, levels, table=None):
-    """allocate_corners with the voxel batch padded to N rows (valid mask) and one start capacity,
-    so the insert compiles once per L. Returns (table, rows [len(vox), L*8])."""
+    """allocate_corners with the voxel batch padded to N rows (valid mask) and one capacity that
+    always fits, so the insert compiles once per L. Returns (table, rows [len(vox), L*8])."""
     vox = np.asarray(vox, np.int32)
     m = len(vox)
     assert m <= N
     pad = np.zeros((N, 3), np.int32)
     pad[:m] = vox
     table = H.create(2048) if table is None else table
-    table, rows = F.allocate_corners(table, jnp.asarray(pad), levels, valid=jnp.arange(N) < m, log=False)
+    table, rows, overflow, _ = F.allocate_corners(table, jnp.asarray(pad), levels, jnp.arange(N) < m, 1024)
+    assert not bool(overflow)
     assert np.all(np.asarray(rows[m:]) == -1)
     return table, rows[:m]
 
@@ -287,8 +288,8 @@ def test_same_leaf_voxel_same_rows(seed, leaf, levels):
                 np.testing.assert_array_equal(rows[i], rows[j])
     # allocating per leaf voxel covers every point: the query path (lookup) finds all L*8 corners
     feats = padded(rng.normal(size=(int(table.count), 2)))
-    f, found = F.query_features(table, feats, jnp.asarray(pts), leaf, levels)
-    np.testing.assert_array_equal(np.asarray(found), levels * 8)
+    f, rows_q = F.query_features(table, feats, jnp.asarray(pts), leaf, levels)
+    np.testing.assert_array_equal(np.asarray(rows_q), rows)  # the query finds the allocated rows
     want = field(jnp.asarray(pts), jnp.asarray(vox), leaf, levels, feats, jnp.asarray(rows), jnp.eye(2))
     np.testing.assert_allclose(np.asarray(f), np.asarray(want), rtol=1e-6, atol=1e-6)
     # every level's voxel contains the leaf voxel
@@ -333,21 +334,27 @@ def test_leaf_voxel_exact_and_level_consistent():
 
 def test_query_features_missing_corners_and_feature_growth():
     leaf, levels = 0.2, 3
-    table, rows = F.allocate_corners(H.create(256), jnp.array([[0, 0, 0], [5, 5, 5]]), levels,
-                                     valid=jnp.array([True, False]), log=False)
+    table, rows, overflow, n_new = F.allocate_corners(H.create(256), jnp.array([[0, 0, 0], [5, 5, 5]]), levels,
+                                                      jnp.array([True, False]), 128)
     np.testing.assert_array_equal(np.asarray(rows[1]), -1)
-    assert int(table.count) == 8 + 8 + 8  # one voxel's corners at each level
+    assert int(table.count) == int(n_new) == 8 + 8 + 8 and not bool(overflow)  # one voxel's corners per level
+    # past the row capacity: nothing is allocated, the table is unchanged
+    same, none, over, _ = F.allocate_corners(table, jnp.array([[9, 9, 9]]), levels, jnp.array([True]), 30)
+    assert bool(over) and int(same.count) == 24 and np.all(np.asarray(none) == -1)
     feats = F.init_features(jax.random.PRNGKey(0), 32, 4, 0.1)
     assert feats.shape == (32, 4) and feats.dtype == jnp.float32
     pts = jnp.array([[0.1, 0.1, 0.1], [1.1, 1.1, 1.1], [-0.1, 0.1, 0.1]], jnp.float32)
-    _, found = F.query_features(table, feats, pts, leaf, levels)
+    _, rows_q = F.query_features(table, feats, pts, leaf, levels)
+    found = np.sum(np.asarray(rows_q) >= 0, axis=1)
     # inside voxel 0: all 24; at leaf voxel (5,5,5) only the level-2 corner (1,1,1) is shared with
     # voxel 0's; leaf voxel (-1,0,0) shares its x=0 face (4 corners) at every level
     np.testing.assert_array_equal(np.asarray(found), [24, 1, 12])
-    grown = F.ensure_feature_rows(feats, 70, jax.random.PRNGKey(1), 0.1)
-    assert grown.shape == (128, 4)
-    np.testing.assert_array_equal(np.asarray(grown[:32]), np.asarray(feats))
-    assert F.ensure_feature_rows(feats, 10, jax.random.PRNGKey(1), 0.1) is feats
+    # a growing table's rows do not depend on when it grew (blocks of FEATURE_INIT_BLOCK rows, own keys)
+    b = F.FEATURE_INIT_BLOCK
+    whole = np.asarray(F.init_feature_rows(0, 0, 3 * b, 4, 0.1))
+    grown = np.concatenate([np.asarray(F.init_feature_rows(0, 0, b // 2, 4, 0.1)),
+                            np.asarray(F.init_feature_rows(0, b // 2, 5 * b // 2, 4, 0.1))])
+    np.testing.assert_array_equal(grown, whole)
 
 
 def test_init_features_std():

@@ -12,7 +12,7 @@ import optax
 from analytic_lidar import corridor_scan, pose_at
 from jaxmap.config import load_config
 from jaxmap.grid import features as gfeat
-from jaxmap.n3 import adam, core, field, scan, window
+from jaxmap.n3 import adam, core, field, frame, scan, window
 from jaxmap.n3.decoder import init_decoder
 from jaxmap.n3.mapper import N3Mapper
 
@@ -125,8 +125,13 @@ def test_sparse_adam_rows_first_touched_late_step_like_a_fresh_dense_adam():
     rng = np.random.default_rng(4)
     r, d, lr = 16, 3, 0.01
     init = jnp.asarray(rng.normal(size=(r, d)), jnp.float32)
-    opt = adam.sparse_adam()
-    update = jax.jit(opt.update)
+    opt = adam.sparse_adam(lr)
+
+    @jax.jit
+    def update(table, st, rows, g):
+        upd, st = opt.update(adam.SparseGrads(rows, g), st, table)
+        return adam.apply_updates(table, upd), st
+
     table, st = init, opt.init(init)
     tx = optax.adam(lr)
     dense_step = jax.jit(lambda g, s, p: tx.update(g, s, p))
@@ -139,7 +144,7 @@ def test_sparse_adam_rows_first_touched_late_step_like_a_fresh_dense_adam():
         rows = np.concatenate([touched, rng.choice(touched, 6), [-1, -1]]).astype(np.int32)  # duplicates, padding
         g = rng.normal(size=(len(rows), d)).astype(np.float32)
         before = np.asarray(table)[late]
-        table, st = update(table, st, jnp.asarray(rows), jnp.asarray(g), lr)
+        table, st = update(table, st, jnp.asarray(rows), jnp.asarray(g))
         if step == 1000:
             first_late_step = np.abs(np.asarray(table)[late] - before)
         gd = np.zeros((r, d), np.float32)
@@ -222,10 +227,10 @@ def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
         def lower(self, static, state, batch):
             return types.SimpleNamespace(compile=lambda: compiled.append(state) or (lambda *a: state))
 
-    monkeypatch.setattr(core, "step", Step())
+    monkeypatch.setattr(frame, "step", Step())
     monkeypatch.setattr(core.Capacities, "of", staticmethod(lambda state: state))
-    monkeypatch.setattr(core, "_EXECUTABLES", collections.OrderedDict())
-    monkeypatch.setattr(core, "COMPILE_SECONDS", [])
+    monkeypatch.setattr(frame, "EXECUTABLES", collections.OrderedDict())
+    monkeypatch.setattr(frame, "COMPILE_SECONDS", [])
     batch = types.SimpleNamespace(points=np.zeros((8, 3)))
     n = core.EXECUTABLES_KEPT
     assert 2 <= n <= 8  # a few programs for a process that maps again, not hundreds of thousands of maps
@@ -233,7 +238,7 @@ def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
         assert core.compiled_step("static", caps, batch)() == caps
     assert core.compiled_step("static", 0, batch)() == 0 and compiled == list(range(n))  # a hit
     core.compiled_step("static", n, batch)  # one more: the least recently used (1, not 0) goes
-    assert list(core._EXECUTABLES) == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
+    assert list(frame.EXECUTABLES) == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
     core.compiled_step("static", 1, batch)
     assert compiled == [*range(n + 1), 1]
 
@@ -448,10 +453,10 @@ def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
         same(state, m.state)
     # a checkpoint of earlier versions (an orbax tree under state/) is still read, to the same state
     from jaxmap.checkpoint import save_tree
-    from jaxmap.n3.checkpoint import _meta, compact
+    from jaxmap.n3.checkpoint import meta_of, compact
 
     assert (tmp_path / "a" / "3" / "arrays").is_dir() and not (tmp_path / "a" / "3" / "state").exists()
-    save_tree(str(tmp_path / "o"), compact(m.state), _meta(m.cfg, m.state, m.timings), step=3)
+    save_tree(str(tmp_path / "o"), compact(m.state), meta_of(m.cfg, m.state, m.timings), step=3)
     _, state, _ = load_state(str(tmp_path / "o"))
     same(state, m.state)
     # an empty map round-trips too

@@ -77,7 +77,8 @@ def test_slam_front_end_drives_the_map_on_a_dense_room_stretch(tmp_path):
     np.testing.assert_allclose(out["ate_slam"]["rmse_m"], out["ate_odometry"]["rmse_m"], rtol=1e-6)
     # ... close to the map built with the true poses (a ratio: robust to the evaluator's protocol; measured
     # 1.62 with the sub-centimetre odometry error of these 8 frames)
-    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.finish import mesh_and_metrics
+    from jaxmap.frame_loop import open_run_sequence
     from jaxmap.imt.run import build_map
 
     icfg = cfg.imt()

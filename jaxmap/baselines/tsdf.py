@@ -47,6 +47,7 @@ import time
 import numpy as np
 
 from jaxmap.errors import DataError
+from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
 from jaxmap.geometry import SE3
 
 log = logging.getLogger(__name__)
@@ -299,21 +300,7 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
     seq = open_sequence(data_dir, begin_frame=begin_frame, end_frame=end_frame, every_frame=every_frame)
     vol = TSDFVolume(voxel_m, trunc_m, dropoff=dropoff)
     t0 = time.perf_counter()
-    frames = seq
-    if progress:
-        from tqdm import tqdm
-
-        frames = tqdm(seq, total=len(seq), desc=f"tsdf {voxel_m:g} m", unit="frame")
-    n_frames = 0
-    n_points = 0
-    for frame in frames:
-        pts = np.asarray(frame.points, dtype=np.float64)
-        r = np.linalg.norm(pts, axis=1)
-        pts = pts[(r >= min_range_m) & (r <= max_range_m)]
-        T_w_s = SE3.from_matrix(np.asarray(frame.pose, dtype=np.float64))
-        vol.integrate(T_w_s.apply(pts), T_w_s.translation())
-        n_frames += 1
-        n_points += len(pts)
+    n_frames, n_points = _fuse(vol, seq, min_range_m, max_range_m, f"tsdf {voxel_m:g} m" if progress else None)
     vol.compact()
     t1 = time.perf_counter()
     mesh = vol.mesh(res, min_component_faces=min_component_faces)
@@ -328,3 +315,23 @@ def tsdf_from_sequence(data_dir, voxel_m: float = 0.2, out_mesh=None, max_range_
     }
     log.info("tsdf: %s", info)
     return info
+
+
+def _fuse(vol: TSDFVolume, seq, min_range_m: float, max_range_m: float, progress: str | None) -> tuple[int, int]:
+    """Integrate every frame of seq through the frame loop, its points cropped to [min_range_m, max_range_m]
+    from the sensor. progress: the bar's label (None: no bar). Returns (frames, points integrated)."""
+    n_points = 0
+
+    def step(frame: Frame):
+        nonlocal n_points
+        pts = np.asarray(frame.points, dtype=np.float64)
+        r = np.linalg.norm(pts, axis=1)
+        pts = pts[(r >= min_range_m) & (r <= max_range_m)]
+        T_w_s = SE3.from_matrix(np.asarray(frame.pose, dtype=np.float64))
+        vol.integrate(T_w_s.apply(pts), T_w_s.translation())
+        n_points += len(pts)
+        return {"points": len(pts)}, frame.pose
+
+    loop = run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
+                      progress=Progress(progress or "", progress is not None))
+    return loop.frames_run, n_points

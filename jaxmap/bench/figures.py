@@ -21,12 +21,12 @@ def ghost_points(mesh_path: str, data_dir: str, n_samples: int = 2_000_000, seed
     from scipy.spatial import cKDTree
 
     from jaxmap import moving
-    from jaxmap.metrics import _load_mesh, read_gt, sample_points_uniformly
+    from jaxmap.metrics import load_mesh, read_gt, sample_points_uniformly
 
     objects = moving.load_moving_objects(data_dir)
     if objects is None:
         raise SystemExit(f"{data_dir} has no moving objects (moving_objects.json / pedestrians.json)")
-    mesh = _load_mesh(mesh_path)
+    mesh = load_mesh(mesh_path)
     pts = sample_points_uniformly(np.asarray(mesh.vertices), np.asarray(mesh.faces), n_samples, seed)
     gt = read_gt(data_dir)["points"]
     inside = moving.inside_boxes(pts, objects.boxes, moving.GHOST_INFLATE_M)

@@ -171,7 +171,8 @@ def main(args) -> int:
     from jaxmap.bench import base_overrides
     from jaxmap.config import ImtConfig, load_config, shipped_config_path
     from jaxmap.imt.mapper import ImtMapper
-    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.finish import mesh_and_metrics
+    from jaxmap.frame_loop import open_run_sequence
     from jaxmap.imt.run import build_map
     from jaxmap.synth.room import generate_room
 

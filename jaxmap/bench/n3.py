@@ -186,7 +186,7 @@ def _quality_row(s: dict) -> dict:
 def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
     from jaxmap.baselines.tsdf import tsdf_from_sequence
     from jaxmap.config import load_config
-    from jaxmap.frame_loop import evaluate_run_mesh
+    from jaxmap.finish import evaluate_run_mesh
     from jaxmap.n3.run import city_config_path
 
     cfg0 = load_config(city_config_path(), [f"data.path={data}"] + base)

@@ -99,7 +99,8 @@ def main(args) -> int:
 
 def slam_against_references(cfg, out: str) -> dict:
     """`jaxmap slam`, and the maps of the same frames with the true poses and with the odometry alone."""
-    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.finish import mesh_and_metrics
+    from jaxmap.frame_loop import open_run_sequence
     from jaxmap.imt.run import build_map
     from jaxmap.slam.run import run_slam
 
@@ -152,7 +153,8 @@ def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
 
     from jaxmap.bench import base_overrides
     from jaxmap.config import load_config, shipped_config_path
-    from jaxmap.frame_loop import mesh_and_metrics, open_run_sequence
+    from jaxmap.finish import mesh_and_metrics
+    from jaxmap.frame_loop import open_run_sequence
     from jaxmap.imt.run import build_map
     from jaxmap.config import SlamConfig
     from jaxmap.slam.run import run_slam

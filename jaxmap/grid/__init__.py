@@ -1,20 +1,31 @@
 """Sparse multi-level feature grid: a fixed-capacity hash table of corner keys and trilinear features."""
 
-from jaxmap.grid import features, hashing
+from jaxmap.grid import compaction, features, hashing
 from jaxmap.grid.features import (
     allocate_corners,
     corner_keys,
     corner_weights,
-    ensure_feature_rows,
+    init_feature_rows,
     init_features,
     interpolate,
     leaf_voxel,
     level_voxels,
     query_features,
 )
-from jaxmap.grid.hashing import HashTable, create, entries, grow, hash_keys, insert, insert_grow, lookup
+from jaxmap.grid.hashing import (
+    HashTable,
+    create,
+    entries,
+    grow,
+    hash_keys,
+    insert,
+    insert_counted,
+    insert_grow,
+    lookup,
+)
 
 __all__ = [
+    "compaction",
     "features",
     "hashing",
     "HashTable",
@@ -22,6 +33,7 @@ __all__ = [
     "hash_keys",
     "lookup",
     "insert",
+    "insert_counted",
     "grow",
     "insert_grow",
     "entries",
@@ -31,7 +43,7 @@ __all__ = [
     "corner_weights",
     "interpolate",
     "init_features",
+    "init_feature_rows",
     "allocate_corners",
     "query_features",
-    "ensure_feature_rows",
 ]

@@ -38,9 +38,9 @@ __all__ = [
     "corner_weights_and_grad",
     "interpolate",
     "init_features",
+    "init_feature_rows",
     "allocate_corners",
     "query_features",
-    "ensure_feature_rows",
 ]
 
 CORNER_OFFSETS = np.array(list(itertools.product((0, 1), repeat=3)), dtype=np.int32)  # [8, 3]
@@ -201,40 +201,51 @@ def init_features(key: jax.Array, n_rows: int, dim: int, std: float) -> jax.Arra
     return jnp.float32(std) * jax.random.normal(key, (n_rows, dim), jnp.float32)
 
 
-def allocate_corners(
-    table: hashing.HashTable,
-    leaf_vox: jax.Array,
-    levels: int,
-    max_load: float = 0.5,
-    valid: jax.Array | None = None,
-    log: bool = True,
-    *,
-    max_probes: int = hashing.DEFAULT_MAX_PROBES,
-) -> tuple[hashing.HashTable, jax.Array]:
-    """Allocate (insert) the corner keys of all levels of the given leaf voxels (host-side).
+FEATURE_INIT_BLOCK = 1 << 16
 
-    Uses ``hashing.insert_grow``, so the table grows as needed and no key is dropped. New rows are
-    ``old count .. new count - 1``; the caller grows its feature table to ``table.count`` rows (see
-    ``ensure_feature_rows``).
+
+def init_feature_rows(seed: int, start: int, n: int, dim: int, std: float) -> jax.Array:
+    """Rows [start, start + n) of a growing feature table's N(0, std^2) initialisation (host-side).
+
+    Rows come in doubling blocks, [0, B), [B, 2B), [2B, 4B), ..., each from its own key
+    (`fold_in(PRNGKey(seed + 2), block start)`, the first from the key itself), so a row's initial
+    value does not depend on the table's capacity or on when it grew (threefry draws are prefix-stable).
+    Returns ``[n, dim]`` float32.
+    """
+    base = jax.random.PRNGKey(seed + 2)
+    out, lo, hi = [], start, start + n
+    b0, b1 = 0, FEATURE_INIT_BLOCK
+    while lo < hi:
+        if lo < b1:
+            key = base if b0 == 0 else jax.random.fold_in(base, b0)
+            top = min(hi, b1)
+            out.append(init_features(key, top - b0, dim, std)[lo - b0:])
+            lo = top
+        b0, b1 = b1, 2 * b1
+    return jnp.concatenate(out) if out else jnp.zeros((0, dim), jnp.float32)
+
+
+def allocate_corners(table: hashing.HashTable, leaf_vox: jax.Array, levels: int, valid: jax.Array,
+                     row_capacity: int, *, max_probes: int = hashing.DEFAULT_MAX_PROBES):
+    """Allocate (insert) the corner keys of all levels of the given leaf voxels (jit-able).
 
     Args:
-      table: the hash table.
+      table: the corner hash table.
       leaf_vox: ``[M, 3]`` int32 leaf voxel indices (duplicates are fine).
       levels: number of levels ``L``.
-      max_load: load factor limit of the table.
-      valid: ``[M]`` bool mask of the voxels to allocate (``None``: all), e.g. for padded batches.
+      valid: ``[M]`` bool mask of the voxels to allocate.
+      row_capacity: static bound on ``table.count`` after the insert (the feature table's rows, or a
+        load-factor limit).
     Returns:
-      ``(table, rows)`` with rows ``[M, L * 8]`` int32 (-1 for invalid voxels).
+      ``(table, rows [M, L * 8] int32, overflow [] bool, n_new [] int32)``: new rows are
+      ``old count .. new count - 1``, -1 for invalid voxels; on overflow the table is unchanged and
+      every row is -1 (grow and retry, see ``hashing.insert``).
     """
-    leaf_vox = jnp.asarray(leaf_vox, jnp.int32)
-    m = leaf_vox.shape[0]
-    keys = corner_keys(leaf_vox, levels).reshape(m * levels * 8, 4)  # [M*L*8, 4]
-    if valid is None:
-        kvalid = None
-    else:
-        kvalid = jnp.repeat(jnp.asarray(valid, bool), levels * 8)  # [M*L*8]
-    table, rows = hashing.insert_grow(table, keys, kvalid, max_load=max_load, log=log, max_probes=max_probes)
-    return table, rows.reshape(m, levels * 8)
+    keys = corner_keys(leaf_vox, levels)                                          # [M, L*8, 4]
+    m = keys.shape[0]
+    table, rows, overflow, n_new, _ = hashing.insert_counted(
+        table, keys.reshape(-1, 4), jnp.repeat(valid, levels * 8), max_probes, row_capacity)
+    return table, rows.reshape(m, -1), overflow, n_new
 
 
 @functools.partial(jax.jit, static_argnames=("levels", "max_probes"))
@@ -255,36 +266,12 @@ def query_features(
       leaf: leaf voxel size (traced: changing it does not recompile).
       levels: number of levels ``L`` (static).
     Returns:
-      ``(feat [N, D] float32, n_found [N] int32)``: ``n_found`` counts the allocated corners among the
-      ``L * 8`` (``L * 8`` means the point is fully inside the mapped grid).
+      ``(feat [N, D] float32, rows [N, L * 8] int32)``: the corner rows of each point's voxels, -1
+      where a corner is not allocated (all ``>= 0`` means the point is fully inside the mapped grid).
     """
     points = jnp.asarray(points, jnp.float32)
-    n = points.shape[0]
     vox = leaf_voxel(points, leaf)  # [N, 3]
-    keys = corner_keys(vox, levels).reshape(n * levels * 8, 4)
-    rows = hashing.lookup(table, keys, max_probes=max_probes).reshape(n, levels * 8)  # [N, L*8]
+    keys = corner_keys(vox, levels)  # [N, L*8, 4]
+    rows = hashing.lookup(table, keys.reshape(-1, 4), max_probes=max_probes).reshape(keys.shape[:2])  # [N, L*8]
     w = corner_weights(points, vox, leaf, levels)  # [N, L*8]
-    return interpolate(features, rows, w), jnp.sum(rows >= 0, axis=1, dtype=jnp.int32)
-
-
-def ensure_feature_rows(features: jax.Array, n_rows: int, key: jax.Array, std: float) -> jax.Array:
-    """Grow a feature table (doubling its row count) until it has at least ``n_rows`` rows.
-
-    Existing rows keep their values (rows never move); new rows are ``N(0, std^2)``. Doubling keeps
-    the number of distinct shapes (and so of recompiles) logarithmic.
-
-    Args:
-      features: ``[R, D]`` float32.
-      n_rows: rows needed (e.g. ``int(table.count)``).
-      key: ``jax.random`` key for the new rows.
-      std: init standard deviation of new rows.
-    Returns:
-      ``[R', D]`` float32 with ``R' >= n_rows`` (``features`` itself if already large enough).
-    """
-    r, d = features.shape
-    if n_rows <= r:
-        return features
-    new_r = max(r, 1)
-    while new_r < n_rows:
-        new_r *= 2
-    return jnp.concatenate([features, init_features(key, new_r - r, d, std)], axis=0)
+    return interpolate(features, rows, w), rows

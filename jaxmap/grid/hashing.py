@@ -13,7 +13,7 @@ Layout (read like mctx's ``Tree``: a frozen dataclass of arrays, ``-1`` / sentin
 
 Everything inside ``jit`` (``lookup``, ``insert``) has static shapes and no Python loop over keys:
 probing runs in rounds of a ``lax.while_loop`` over the batch, which is compacted into smaller static
-buffers as keys finish (most finish in one or two rounds; see ``_staged_while``). ``insert`` claims empty slots
+buffers as keys finish (most finish in one or two rounds; see ``compaction.staged_while``). ``insert`` claims empty slots
 with a scatter-min of batch indices (the smallest index wins a contested slot), so a batch with
 duplicate keys gives each distinct key exactly one row, in order of first occurrence. If a key
 cannot be placed (probe bound, or a row capacity), ``insert`` reports ``overflow`` and leaves the
@@ -38,6 +38,7 @@ import numpy as np
 from jax import lax
 
 from jaxmap.errors import CapacityError
+from jaxmap.grid.compaction import prefix_sum, stage_sizes, staged_while
 
 __all__ = [
     "EMPTY",
@@ -47,6 +48,7 @@ __all__ = [
     "hash_keys",
     "lookup",
     "insert",
+    "insert_counted",
     "grow",
     "insert_grow",
     "entries",
@@ -57,8 +59,6 @@ _logger = logging.getLogger("jaxmap")
 EMPTY = np.int32(np.iinfo(np.int32).min)  # sentinel key value of an empty slot (all 4 columns)
 DEFAULT_MAX_PROBES = 64
 MAX_CAPACITY = 1 << 30  # slot indices stay well inside int32
-_SHRINK = 8  # batch compaction factor between probing stages
-_MIN_STAGE = 512  # no compaction stage smaller than this
 
 # 32-bit hash: murmur3_32 over the 4 key words (seed 0). The classic spatial hash
 # x*p0 ^ y*p1 ^ z*p2 (Teschner et al. 2003 / instant-NGP) is *not* used: with negative coordinates
@@ -139,76 +139,10 @@ def hash_keys(keys: jax.Array) -> jax.Array:
     return _fmix32(h ^ np.uint32(16))
 
 
-def prefix_sum(x: jax.Array) -> jax.Array:
-    """Inclusive prefix sum along axis 0 as a parallel scan: on XLA's CPU backend ``jnp.cumsum``
-    lowers to a reduce-window that is 3-5x slower at the 10^5-10^6 sizes of a frame."""
-    return lax.associative_scan(jnp.add, x, axis=0)
-
-
-def nonzero_fixed(mask: jax.Array, size: int, fill_value: int) -> jax.Array:
-    """``jnp.nonzero(mask, size=size, fill_value=fill_value)[0]`` (1-D, int32) through `prefix_sum`."""
-    n = mask.shape[0]
-    pos = prefix_sum(mask.astype(jnp.int32)) - 1
-    out = jnp.full((size,), fill_value, jnp.int32)
-    return out.at[jnp.where(mask, pos, size)].set(jnp.arange(n, dtype=jnp.int32), mode="drop")
-
-
 def _slot(h: jax.Array, probe: jax.Array, capacity: int) -> jax.Array:
     """Slot of probe number ``probe`` (linear probing): ``(h + probe) mod C`` as int32."""
     mask = np.uint32(capacity - 1)
     return ((h + probe.astype(jnp.uint32)) & mask).astype(jnp.int32)
-
-
-def _stage_sizes(n: int) -> list[int]:
-    """Static buffer sizes of the compaction stages of a batch of ``n`` keys: n/8, n/64, ... (>= 512)."""
-    sizes = []
-    while n // _SHRINK >= _MIN_STAGE:
-        n = n // _SHRINK
-        sizes.append(n)
-    return sizes
-
-
-def _staged_while(guard, live, body, kill, const, state, shared, sizes):
-    """``while guard(shared) and any(live): body`` over a batch, shrinking the batch as keys finish.
-
-    Most keys resolve in the first one or two probe rounds and a few need ten or more, so running every
-    round over the whole batch wastes most of the work. Stage ``k`` runs rounds until at most
-    ``sizes[k]`` keys are live, then the live keys are gathered (``jnp.nonzero`` with a static size)
-    into a buffer of that size, the next stage runs on it, and its per-key state is scattered back.
-    Semantics are those of one loop over the whole batch: finished keys take no part in a round.
-
-    Args:
-      guard: ``shared -> [] bool`` (e.g. round < bound).
-      live: ``(const, state, shared) -> [n] bool`` keys still working.
-      body: ``(const, state, shared) -> (state, shared)``: one round.
-      kill: ``(const, state, ok [m]) -> (const, state)``: disable the padding entries (``~ok``) of a stage.
-      const: pytree of ``[n, ...]`` per-key inputs (gathered into stages, never written back).
-      state: pytree of ``[n, ...]`` per-key state (gathered, then scattered back).
-      shared: pytree carried whole (table arrays, round counter).
-      sizes: static stage sizes, decreasing.
-    Returns:
-      ``(state, shared)``.
-    """
-    limit = sizes[0] if sizes else 0
-
-    def cond(carry):
-        st, sh = carry
-        return guard(sh) & (jnp.sum(live(const, st, sh), dtype=jnp.int32) > limit)
-
-    state, shared = lax.while_loop(cond, lambda c: body(const, *c), (state, shared))
-    if not sizes:
-        return state, shared
-    n = jax.tree_util.tree_leaves(const)[0].shape[0]
-    sel = nonzero_fixed(live(const, state, shared), sizes[0], n)  # [m]
-    ok = sel < n  # [m]
-    take = jnp.where(ok, sel, 0)  # [m]
-    sub_const = jax.tree_util.tree_map(lambda x: x[take], const)
-    sub_state = jax.tree_util.tree_map(lambda x: x[take], state)
-    sub_const, sub_state = kill(sub_const, sub_state, ok)
-    sub_state, shared = _staged_while(guard, live, body, kill, sub_const, sub_state, shared, sizes[1:])
-    put = jnp.where(ok, sel, n)  # [m] padding writes nowhere
-    state = jax.tree_util.tree_map(lambda full, sub: full.at[put].set(sub, mode="drop"), state, sub_state)
-    return state, shared
 
 
 @functools.partial(jax.jit, static_argnames=("max_probes",))
@@ -216,7 +150,7 @@ def lookup(table: HashTable, keys: jax.Array, *, max_probes: int = DEFAULT_MAX_P
     """Rows of ``keys``, or -1 for keys not in the table.
 
     Probing runs in rounds (probe ``p`` of every unfinished key per round); a key finishes on its key
-    (found) or on an empty slot (absent). The batch is compacted as keys finish (``_staged_while``).
+    (found) or on an empty slot (absent). The batch is compacted as keys finish (``compaction.staged_while``).
 
     Args:
       table: the hash table (capacity ``C``).
@@ -248,8 +182,8 @@ def lookup(table: HashTable, keys: jax.Array, *, max_probes: int = DEFAULT_MAX_P
     def kill(const, state, ok):
         return const, (state[0] | ~ok, state[1])
 
-    (_, rows), _ = _staged_while(
-        lambda probe: probe < max_probes, live, body, kill, const, state, jnp.int32(0), _stage_sizes(n)
+    (_, rows), _ = staged_while(
+        lambda probe: probe < max_probes, live, body, kill, const, state, jnp.int32(0), stage_sizes(n)
     )
     return rows
 
@@ -266,8 +200,7 @@ def _claim(table_keys: jax.Array, keys: jax.Array, h: jax.Array, active: jax.Arr
     Duplicates of one key move in lockstep, so the first occurrence in the batch is the one that wins.
     Every key resolves or advances at least every second round, hence at most ``2 * max_probes + 1``
     rounds. A slot is proposed for in one round only (it is occupied afterwards), so the scatter-min
-    target ``claim [C]`` is filled once per call, not once per round. The batch is compacted as keys
-    finish (``_staged_while``).
+    target ``claim [C]`` is filled once per call, not per round (the batch shrinks: ``staged_while``).
 
     Args:
       table_keys: ``[C, 4]`` int32 slot keys.
@@ -311,18 +244,18 @@ def _claim(table_keys: jax.Array, keys: jax.Array, h: jax.Array, active: jax.Arr
         k, hh, idx, act = const
         return (k, hh, idx, act & ok), state
 
-    (probe, placed, won), (_, table_keys, _) = _staged_while(
-        lambda shared: shared[0] < max_rounds, live, body, kill, const, state, shared, _stage_sizes(n)
+    (probe, placed, won), (_, table_keys, _) = staged_while(
+        lambda shared: shared[0] < max_rounds, live, body, kill, const, state, shared, stage_sizes(n)
     )
     return table_keys, _slot(h, probe, capacity), won, placed
 
 
 @functools.partial(jax.jit, static_argnames=("max_probes", "row_capacity"))
-def _insert_impl(table: HashTable, keys: jax.Array, valid: jax.Array, max_probes: int, row_capacity: int | None):
-    """``insert`` plus diagnostics: returns (table, rows [N], overflow [], n_new [], probe_fail [])."""
+def insert_counted(table: HashTable, keys: jax.Array, valid: jax.Array, max_probes: int, row_capacity: int | None):
+    """``insert`` with a static ``row_capacity`` and its diagnostics (jit-able, as the frame program calls it).
+    Returns (table, rows [N], overflow [], n_new [] distinct new keys placed, probe_fail [])."""
     capacity = table.capacity
     keys = jnp.asarray(keys, jnp.int32)  # [N, 4]
-    n = keys.shape[0]
     active = jnp.asarray(valid, bool) & (keys[:, 0] != EMPTY)  # [N]
     h = hash_keys(keys)  # [N]
     new_keys, slot, won, placed = _claim(table.keys, keys, h, active, max_probes)
@@ -387,7 +320,7 @@ def insert(
     keys = jnp.asarray(keys, jnp.int32)
     if valid is None:
         valid = jnp.ones(keys.shape[:1], bool)
-    out, rows, overflow, _, _ = _insert_impl(table, keys, valid, max_probes, row_capacity)
+    out, rows, overflow, _, _ = insert_counted(table, keys, valid, max_probes, row_capacity)
     return out, rows, overflow
 
 
@@ -465,7 +398,7 @@ def insert_grow(
     while True:
         capacity = table.capacity
         limit = max(1, int(max_load * capacity))
-        out, rows, overflow, n_new, probe_fail = _insert_impl(table, keys, valid, max_probes, limit)
+        out, rows, overflow, n_new, probe_fail = insert_counted(table, keys, valid, max_probes, limit)
         if not bool(overflow):
             return out, rows
         if bool(probe_fail):  # n_new only counts the keys placed before probing failed: count exactly
@@ -479,15 +412,9 @@ def insert_grow(
                 f"hash table needs more than {MAX_CAPACITY} slots for {need} keys at max_load={max_load}"
             )
         if log:
-            _logger.info(
-                "hash table: growing %d -> %d slots (%d keys + %d new, max_load %.2f%s)",
-                capacity,
-                new_capacity,
-                int(table.count),
-                int(n_new),
-                max_load,
-                ", probe bound hit" if bool(probe_fail) else "",
-            )
+            _logger.info("hash table: growing %d -> %d slots (%d keys + %d new, max_load %.2f%s)", capacity,
+                         new_capacity, int(table.count), int(n_new), max_load,
+                         ", probe bound hit" if bool(probe_fail) else "")
         table = grow(table, new_capacity, max_probes=max_probes)
 
 

@@ -20,8 +20,9 @@ import time
 import numpy as np
 
 from jaxmap.config import ImtConfig, save_config
-from jaxmap.frame_loop import (Checkpoints, Frame, LoopResult, Prefetcher, Progress, finish_run, open_run_sequence,
-                               open_viewer, run_frames)
+from jaxmap.finish import finish_run
+from jaxmap.frame_loop import (Checkpoints, Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer,
+                               run_frames)
 from jaxmap.imt.mapper import ImtMapper
 
 

@@ -1,4 +1,4 @@
-"""Checkpoints of an N3 map: the `core.N3State` in a compact form, plus the config that made it.
+"""Checkpoints of an N3 map: the `n3state.N3State` in a compact form, plus the config that made it.
 
 The state's arrays are sized for growth (hash tables at most half full, feature rows and store
 blocks beyond what is used), so the checkpoint keeps only what is in use and `load_state`
@@ -29,48 +29,26 @@ import threading
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 
-from jaxmap.checkpoint import load, read_tree, save_arrays
+from jaxmap.checkpoint import host_array, load, named_leaves, read_tree, save_arrays
 from jaxmap.config import ConfigError, MapConfig, from_dict, to_dict
 from jaxmap.errors import CheckpointError
 from jaxmap.grid import hashing
-from jaxmap.n3 import core
+from jaxmap.n3 import state as n3state
 
 _STORE_BLOCK_FIELDS = ("pairs", "surface", "frame", "count", "received", "frames_seen", "voxel_of_slot", "coord",
                        "last_hit")
 
 
-def _in_host_memory(x) -> bool:
-    """Is `x` a numpy array or a jax array held in host memory (the CPU backend)?"""
-    devices = getattr(x, "devices", None)
-    return devices is None or all(d.platform == "cpu" for d in devices())
-
-
-def _host(x, rows=None, copy: bool = True) -> np.ndarray:
-    """`x`, or its `rows` (a slice or an index array; None = all), as a host array.
-
-    In host memory the rows are read straight out of a view of the buffer; elsewhere they are sliced
-    or gathered on the device first, so only the used rows cross to the host (a full `device_get`
-    would copy the whole capacity). Slicing on the CPU device too would hold the used rows twice
-    (2 GB more at the end of the long drive). `copy`: an own copy, needed when the state's buffers
-    may change before the array is written (the next frame's donated step overwrites them while a
-    background save writes); without it, a slice of a host buffer is a view of it."""
-    if rows is None:  # a scalar or a decoder leaf: small, always an own copy
-        return np.array(x)
-    if _in_host_memory(x):
-        v = np.asarray(x)[rows]
-        return np.array(v) if copy and isinstance(rows, slice) else v  # an index array gathers a new array
-    return np.array(x[jnp.asarray(rows) if isinstance(rows, np.ndarray) else rows])
-
-
 def _rows(x, n: int, copy: bool = True) -> np.ndarray:
     """The first n rows, padded to at least one (orbax stored no zero-size arrays; kept for one format)."""
-    return _host(x, slice(0, max(n, 1)), copy) if len(x) else np.zeros((1,) + x.shape[1:], x.dtype)
+    return host_array(x, slice(0, max(n, 1)), copy) if len(x) else np.zeros((1,) + x.shape[1:], x.dtype)
 
 
-def _compact_fns(state: core.N3State, copy: bool) -> dict:
+def _compact_fns(state: n3state.N3State, copy: bool) -> dict:
     """The part of the state in use as nested dicts of functions that each return one host array
-    (`_host`): the tables are fetched when their function is called, one at a time."""
+    (`host_array`): the tables are fetched when their function is called, one at a time."""
     nv, nr = (int(x) for x in jax.device_get((state.voxels.count, state.corners.count)))
     st = state.store
     used = np.nonzero(np.asarray(jax.device_get(st.voxel_of_slot)) >= 0)[0].astype(np.int32)
@@ -79,7 +57,7 @@ def _compact_fns(state: core.N3State, copy: bool) -> dict:
     rows = functools.partial(_rows, copy=copy)
 
     def value(x):  # a scalar, the decoder: small, always an own copy
-        return later(_host, x)
+        return later(host_array, x)
 
     def keys(table, n):
         return lambda: _rows(hashing.entries(table)[0], n, copy=False)  # entries are new arrays: no copy needed
@@ -97,7 +75,7 @@ def _compact_fns(state: core.N3State, copy: bool) -> dict:
         "decoder_opt": {"count": value(d.count), "mu": jax.tree_util.tree_map(value, d.mu),
                         "nu": jax.tree_util.tree_map(value, d.nu)},
         "store_slots": later(_rows, used, len(used), copy=False),  # `used` is this function's own array
-        "store": {k: (later(rows, getattr(st, k), 0) if len(used) == 0 else later(_host, getattr(st, k), used))
+        "store": {k: (later(rows, getattr(st, k), 0) if len(used) == 0 else later(host_array, getattr(st, k), used))
                   for k in _STORE_BLOCK_FIELDS},
         "slot_of_voxel": later(rows, st.slot_of_voxel, nv), "window_ids": value(st.window_ids),
         "window_n": value(st.window_n), "origin_vox": value(state.origin_vox), "key": value(state.key),
@@ -111,28 +89,20 @@ def _compact_fns(state: core.N3State, copy: bool) -> dict:
     return tree
 
 
-def compact(state: core.N3State) -> dict:
+def compact(state: n3state.N3State) -> dict:
     """The part of the state in use, as nested dicts of host numpy arrays (own copies; counts under "n")."""
     return jax.tree_util.tree_map(lambda f: f(), _compact_fns(state, copy=True), is_leaf=callable)
 
 
-def compact_leaves(state: core.N3State) -> list[tuple[str, callable]]:
+def compact_leaves(state: n3state.N3State) -> list[tuple[str, callable]]:
     """(name, fn) of every leaf of `compact(state)`, "a/b" naming tree["a"]["b"]; `fn()` fetches the
     leaf then, as a view of the state's buffer where it can (write it before the state changes)."""
-    return _named(_compact_fns(state, copy=False))
+    return named_leaves(_compact_fns(state, copy=False))
 
 
-def _named(tree) -> list[tuple[str, object]]:
-    """(name, leaf) of a tree of nested dicts, "a/b" naming tree["a"]["b"] (as `read_tree` nests them)."""
-    flat, _ = jax.tree_util.tree_flatten_with_path(tree, is_leaf=callable)
-    return [("/".join(str(k.key) for k in path), x) for path, x in flat]
-
-
-def expand(static: core.N3Static, cfg: MapConfig, caps: core.Capacities, c: dict) -> core.N3State:
+def expand(static: n3state.N3Static, cfg: MapConfig, caps: n3state.Capacities, c: dict) -> n3state.N3State:
     """Inverse of `compact` (host side): the state at the saved capacities."""
-    import optax
-
-    state = core.init_state(static, cfg, caps)
+    state = n3state.init_state(static, cfg, caps)
     nv, nr, nb = int(c["n"]["voxels"]), int(c["n"]["rows"]), int(c["n"]["blocks"])
 
     def table(empty, keys):
@@ -168,7 +138,7 @@ def expand(static: core.N3Static, cfg: MapConfig, caps: core.Capacities, c: dict
         decoder_opt=optax.ScaleByAdamState(count=jnp.asarray(d["count"]), mu=as_j(d["mu"]), nu=as_j(d["nu"])),
         store=store, pool=_expand_pool(state.pool, c), origin_vox=jnp.asarray(c["origin_vox"]),
         key=jnp.asarray(c["key"]),
-        frame=jnp.asarray(c["frame"]), hyper=core.Hyper(**as_j(c["hyper"])),
+        frame=jnp.asarray(c["frame"]), hyper=n3state.Hyper(**as_j(c["hyper"])),
     )
 
 
@@ -183,31 +153,32 @@ def _expand_pool(empty, c: dict):
                             for k in ("pairs", "surface", "frame", "voxel_row")}, n=jnp.int32(n))
 
 
-def _meta(cfg: MapConfig, state: core.N3State, timings: list) -> dict:
+def meta_of(cfg: MapConfig, state: n3state.N3State, timings: list) -> dict:
+    """meta.json of a checkpoint: the config, frames mapped, layout, capacities and timings so far."""
     return {"config": to_dict(cfg), "frame": int(state.frame), "layout": "compact-1",
-            "capacity": dataclasses.asdict(core.Capacities.of(state)), "timings": list(timings)}
+            "capacity": dataclasses.asdict(n3state.Capacities.of(state)), "timings": list(timings)}
 
 
-def save_state(path: str, cfg: MapConfig, state: core.N3State, timings: list) -> None:
+def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> None:
     """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are
     kept), one array at a time: on the CPU straight from the state's buffers, with no copy."""
     wait_for_saves()
-    save_arrays(path, compact_leaves(state), _meta(cfg, state, timings), step=int(state.frame))
+    save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings), step=int(state.frame))
 
 
 _PENDING: list = []  # the one background save in flight: [thread, error or None]
 
 
-def save_state_async(path: str, cfg: MapConfig, state: core.N3State, timings: list) -> None:
+def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> None:
     """Like `save_state`, but the write happens in a background thread after one host copy of the
     compact state; call `wait_for_saves()` before relying on the files."""
     wait_for_saves()
-    tree, meta = compact(state), _meta(cfg, state, timings)
+    tree, meta = compact(state), meta_of(cfg, state, timings)
     slot = [None, None]
 
     def work():
         try:
-            save_arrays(path, [(name, functools.partial(np.asarray, x)) for name, x in _named(tree)], meta,
+            save_arrays(path, [(name, functools.partial(np.asarray, x)) for name, x in named_leaves(tree)], meta,
                         step=meta["frame"])
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
             slot[1] = e
@@ -232,7 +203,7 @@ def wait_for_saves() -> None:
             raise err
 
 
-def load_state(path: str) -> tuple[MapConfig, core.N3State, list]:
+def load_state(path: str) -> tuple[MapConfig, n3state.N3State, list]:
     """(config, state, timings) of the newest intact checkpoint in directory `path` (see `save_state`;
     `path` may also name one checkpoint `path/<step>`). Falls back to the older checkpoint with a
     warning when the newer is damaged; `jaxmap.errors.CheckpointError` when none is usable,
@@ -241,13 +212,13 @@ def load_state(path: str) -> tuple[MapConfig, core.N3State, list]:
     return load(path, _build, "N3 map")
 
 
-def _build(ckpt: str, meta: dict) -> tuple[MapConfig, core.N3State, list]:
+def _build(ckpt: str, meta: dict) -> tuple[MapConfig, n3state.N3State, list]:
     """(config, state, timings) of one verified checkpoint directory; CheckpointError when unusable."""
     where = os.path.join(ckpt, "meta.json")
     try:
         cfg = from_dict(MapConfig, meta["config"], source=where)
-        caps = core.Capacities(**meta["capacity"])
+        caps = n3state.Capacities(**meta["capacity"])
     except (KeyError, TypeError, ConfigError) as e:
         raise CheckpointError(f"{where}: not an N3 map checkpoint ({type(e).__name__}: {e})") from None
-    static = core.N3Static.from_config(cfg)
+    static = n3state.N3Static.from_config(cfg)
     return cfg, expand(static, cfg, caps, read_tree(ckpt)), list(meta.get("timings", []))

@@ -2,9 +2,9 @@
 
 The field is `sdf(x) = MLP(sum_c w_c(x) F_c)`: the trilinear weights `w_c(x)` of the point in its
 leaf voxel's L*8 corner cells (all levels) times those corners' features `F [L*8, D]`, decoded by
-the shared MLP. Everything is written for ONE point and lifted with `jax.vmap`; the eikonal term
-takes the spatial gradient with `jax.grad` and the loss is differentiated again by the optimiser
-(N3 paper, eq. 1-3; multinerf computes normals the same way).
+the shared MLP (`decoder.decode`). Everything is written for ONE point and lifted with `jax.vmap`;
+the eikonal term takes the spatial gradient with `jax.grad` and the loss is differentiated again by
+the optimiser (N3 paper, eq. 1-3; multinerf computes normals the same way).
 """
 from __future__ import annotations
 
@@ -13,19 +13,8 @@ import functools
 import jax
 
 from jaxmap.grid import features as gfeat
+from jaxmap.n3.decoder import decode
 from jaxmap.n3.loss import bce_loss, eikonal_loss
-
-
-def mlp(params, feat):
-    """The SDF decoder (`decoder.SDFDecoder`) on one feature vector [D] -> [] (plain jnp, so the
-    double derivative of the eikonal term stays a few small matmuls)."""
-    layers = params["params"]
-    names = sorted(layers, key=lambda k: int(k.split("_")[-1]))
-    h = feat
-    for name in names[:-1]:
-        h = jax.nn.relu(h @ layers[name]["kernel"] + layers[name]["bias"])
-    out = layers[names[-1]]
-    return (h @ out["kernel"] + out["bias"])[0]
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3))
@@ -51,7 +40,7 @@ def sdf_at(x, corner_feats, leaf_vox, dec_params, *, leaf: float, levels: int):
     """SDF at one map-frame point. x: [3] float32; corner_feats: [L*8, D] features of the point's
     leaf voxel's corners (all levels, zero where unallocated); leaf_vox: [3] int32 the leaf voxel
     whose corners those are. Returns [] float32 (metres, positive towards the sensor)."""
-    return mlp(dec_params, trilinear_weights(x, leaf_vox, leaf, levels) @ corner_feats)
+    return decode(dec_params, trilinear_weights(x, leaf_vox, leaf, levels) @ corner_feats)
 
 
 def group_sdf_and_grad(points, corner_feats, leaf_vox, dec_params, *, leaf: float, levels: int):

@@ -14,7 +14,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmap.grid.hashing import prefix_sum
+from jaxmap.grid.compaction import prefix_sum
 
 
 @flax.struct.dataclass

@@ -1,22 +1,56 @@
-"""Reading the N3 map: SDF (and its gradient) at world points, and the marching-cubes mesh.
-
-Host-side wrappers over the jitted `core.query`: world -> map frame in float64, fixed-size chunks
-(one compile for any number of points).
+"""Reading the N3 map: SDF (and its gradient) at map-frame points (`query`, pure; the frame program's
+point filter uses it too), and host-side wrappers: world -> map frame in float64, fixed-size chunks
+(one compile for any number of points), and the marching-cubes mesh.
 """
 from __future__ import annotations
 
+import functools
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.n3 import core
+from jaxmap.config import ConfigError
+from jaxmap.grid.features import query_features
+from jaxmap.mesh import extract_mesh
+from jaxmap.n3.decoder import decode
+from jaxmap.n3.loss import sdf_and_grad
+from jaxmap.n3.state import N3State, N3Static, origin_world
 
 CHUNK = 1 << 16  # points per compiled query call
 
 
-def query_world(static: core.N3Static, state: core.N3State, points_w, grad: bool = False):
+def query(static: N3Static, state: N3State, points_m):
+    """SDF at map-frame points [N, 3] -> (sdf [N] float32, valid [N] bool).
+
+    A point is valid where the 8 corners of its level-`mask_level` voxel have features (0 = only
+    inside allocated leaf voxels; 1 = inside their 2x parents, which closes the gaps between LiDAR
+    rings on grazing ground, as SHINE/N3 mesh at `mc_vis_level` 1), and at least `min_leaf_corners`
+    of the 8 corners of its leaf voxel have features. Corners without features count as zero.
+    """
+    f, rows = query_features(state.corners, state.feature_table, points_m, static.leaf, static.levels)
+    ml = static.mask_level
+    valid = jnp.all(rows[:, ml * 8:(ml + 1) * 8] >= 0, axis=1)                     # rows: [N, L*8]
+    valid &= jnp.sum(rows[:, :8] >= 0, axis=1) >= static.min_leaf_corners
+    return jax.vmap(decode, in_axes=(None, 0))(state.decoder, f), valid
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def query_jit(static: N3Static, state: N3State, points_m):
+    return query(static, state, points_m)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def query_grad_jit(static: N3Static, state: N3State, points_m):
+    """(sdf [N], d sdf / d x [N, 3]) at map-frame points [N, 3]."""
+    return sdf_and_grad(lambda p: query(static, state, p)[0], points_m)
+
+
+def query_world(static: N3Static, state: N3State, points_w, grad: bool = False):
     """SDF at world points [N, 3] -> (sdf [N] float32, valid [N] bool), or with `grad`
     (sdf [N], d sdf / d x [N, 3]), in CHUNK-sized compiled calls."""
-    pts = np.asarray(points_w, np.float64).reshape(-1, 3) - core.origin_world(static, state)
-    fn = core.query_grad_jit if grad else core.query_jit
+    pts = np.asarray(points_w, np.float64).reshape(-1, 3) - origin_world(static, state)
+    fn = query_grad_jit if grad else query_jit
     out = []
     for i in range(0, len(pts), CHUNK):
         chunk = pts[i:i + CHUNK].astype(np.float32)
@@ -39,20 +73,17 @@ def mesh_cells(leaf_voxels: np.ndarray, mask_level: int) -> np.ndarray:
     return (parents[:, None, :] * k + offs[None]).reshape(-1, 3).astype(np.int32)
 
 
-def extract_mesh_of(static: core.N3Static, state: core.N3State, res: float, min_component_faces: int):
+def extract_mesh_of(static: N3Static, state: N3State, res: float, min_component_faces: int):
     """Marching-cubes mesh of the zero level set (trimesh.Trimesh, world frame) on the lattice
     `k * res` of the map frame, whose origin is a multiple of the coarsest voxel: `res` must divide
     the leaf voxel size, so every method and run meshes on the same world lattice."""
-    from jaxmap.config import ConfigError
-    from jaxmap.mesh import extract_mesh
-
     k = static.leaf / res
     if res <= 0 or abs(k - round(k)) > 1e-6:
         raise ConfigError(f"mesh resolution {res:g} m must be positive and divide the leaf voxel size "
                           f"{static.leaf:g} m (e.g. {static.leaf / 2:g} or {static.leaf:g})")
     n = int(state.voxels.count)
     cells = mesh_cells(np.asarray(state.voxel_coord[:n]), static.mask_level)
-    origin = core.origin_world(static, state)
+    origin = origin_world(static, state)
 
     def sdf_fn(p_m):
         return query_world(static, state, p_m.astype(np.float64) + origin)

@@ -22,8 +22,8 @@ import numpy as np
 from jaxmap import compile_cache
 from jaxmap.config import MapConfig, save_config, shipped_config_path, to_dict
 from jaxmap.errors import CheckpointError, NoCheckpointError
-from jaxmap.frame_loop import (Checkpoints, Frame, Prefetcher, Progress, finish_run, open_run_sequence, open_viewer,
-                               run_frames)
+from jaxmap.finish import finish_run
+from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.n3 import checkpoint, scan
 from jaxmap.n3.core import COMPILE_SECONDS

@@ -12,12 +12,11 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import SE3, validate_pose
-from jaxmap.n3.core import RawScan, ScanBatch
+from jaxmap.n3.scan_batch import RawScan, ScanBatch
 from jaxmap.preprocess import preprocess_scan
+from jaxmap.sizes import bucket_for  # noqa: F401  (re-exported: the frame loops pad with scan.bucket_for)
 
 log = logging.getLogger("jaxmap")
-
-BUCKET_STEP = 4096  # scan sizes are padded to multiples of this (static shapes: one compile)
 
 
 def clean_points(points_s, frame: int) -> np.ndarray:
@@ -58,14 +57,6 @@ def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket:
                    (T_w_s.translation() - origin_w).astype(np.float32))
 
 
-def bucket_for(n: int, current: int = 0) -> int:
-    """Padded scan size: the current bucket while n fits, else 1.25 n rounded up to BUCKET_STEP
-    (a new bucket recompiles the frame program, so it leaves room for the next scans)."""
-    if 0 < n <= current:
-        return current
-    return int(np.ceil(max(1.25 * n, 1) / BUCKET_STEP) * BUCKET_STEP)
-
-
 def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray,
              bucket: int) -> ScanBatch:
     """Sensor-frame points/normals [M, 3] -> a ScanBatch in the map frame padded to `bucket` rows.
@@ -86,50 +77,3 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
     out_p[:n], out_n[:n] = pts, nrm
     out_p[n:], out_n[n:] = sensor + 1.0, (0.0, 0.0, 1.0)
     return ScanBatch(out_p, out_n, np.arange(bucket) < n, sensor)
-
-
-class Prefetcher:
-    """Iterate `(i, points_s, normals_s, pose)` over frames [start, stop) of a sequence, read and
-    preprocessed (with `preprocess.device`, only read and checked: normals_s is None) ahead by `workers` threads (default: one per two CPU cores, at least one), in
-    order. On a 2-core laptop one thread overlaps the device's work; on a GPU machine the device
-    maps a city frame in ~20 ms, and several frames are preprocessed at once to keep up.
-    Errors are re-raised in the consumer."""
-
-    def __init__(self, seq, start: int, stop: int, cfg_preprocess, workers: int | None = None):
-        import concurrent.futures
-        import os
-
-        # Only sequences that read each frame from its own file are read from several threads
-        # (a ROS bag reader is one open file).
-        parallel = getattr(seq, "thread_safe_frames", False)
-        self._workers = workers or (max(1, (os.cpu_count() or 2) // 2) if parallel else 1)
-        self._pool = concurrent.futures.ThreadPoolExecutor(self._workers, thread_name_prefix="jaxmap-prefetch")
-        self._depth = self._workers + 1
-        self._next, self._stop = start, stop
-        self._futures: list = []
-        self._seq, self._cfg = seq, cfg_preprocess
-
-    def _load(self, i: int):
-        fr = self._seq.frame(i)
-        if self._cfg.device:  # the frame program preprocesses: points cleaned, normals None
-            pts, pose = check_frame(fr.points, fr.pose, i)
-            return i, pts, None, pose
-        return (i, *preprocess(fr.points, fr.pose, self._cfg, i))
-
-    def _fill(self):
-        while self._next < self._stop and len(self._futures) < self._depth:
-            self._futures.append(self._pool.submit(self._load, self._next))
-            self._next += 1
-
-    def __iter__(self):
-        self._fill()
-        while self._futures:
-            item = self._futures.pop(0).result()
-            self._fill()
-            yield item
-
-    def close(self):
-        for f in self._futures:
-            f.cancel()
-        self._futures = []
-        self._pool.shutdown(wait=True, cancel_futures=True)

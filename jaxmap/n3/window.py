@@ -24,7 +24,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmap.grid.hashing import nonzero_fixed, prefix_sum
+from jaxmap.grid.compaction import nonzero_fixed, prefix_sum
 
 BLOCK_POLICIES = ("reservoir", "ring")
 CARVE_RULES = ("replace", "raise")
@@ -156,26 +156,22 @@ def ranks_within_slot(slots, n_slots: int):
     return rank, hist.sum(0)[:n_slots]
 
 
-def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame, center_vox, allowed=True,
-           key=None, *, radius_vox: int, policy: str = "ring",
-           pairs_per_frame: int = 0):
-    """Slide the window, give a block to every voxel of the batch that has none, append the pairs.
+class _Blocks(NamedTuple):
+    """The store's per-block arrays once the window slid and the batch's voxels got their blocks."""
 
-    voxel_rows: [M] int32 voxel row of each pair (-1 = drop the pair); coords: [M, 3] int32 leaf-voxel
-    coordinates; points: [M, 3] float32 map frame; labels: [M]; surface: [M] bool; frame: [] int32;
-    center_vox: [3] int32 leaf voxel of the sensor; allowed: [] bool, False makes it a no-op.
+    slot_of_voxel: jax.Array  # [V] int32
+    voxel_of_slot: jax.Array  # [S] int32
+    coord: jax.Array          # [S, 3] int32
+    count: jax.Array          # [S] int32
+    received: jax.Array       # [S] int32
+    frames_seen: jax.Array    # [S] int32
+    last_hit: jax.Array       # [S] int32
 
-    All or nothing: if more voxels need a block than there are free blocks after the slide, or
-    `allowed` is False, the store comes back unchanged with `ok = False` (the caller grows the store
-    outside jit and retries; no pair is ever dropped for capacity). What a block keeps is `policy`
-    (module docstring): "ring", the newest P pairs (within a frame, later pairs of the batch are
-    newer); "reservoir", a uniform sample of the pairs offered (key: PRNG key of the draws).
-    pairs_per_frame > 0: a voxel is offered at most that many of a frame's pairs (evenly spaced in
-    batch order); 0 = all.
 
-    Returns (store, ids [S] int32, n [] int32: the window blocks that hold pairs, `ids[:n]`, StoreStats).
-    """
-    s, p = store.n_slots, store.block_size
+def assign_blocks(store: PairStore, voxel_rows, coords, center_vox, allowed, radius_vox: int):
+    """Slide the window and give a block to every voxel of the batch that has none (all or nothing).
+    Returns (_Blocks, slot [M] int32 of each pair (S: none), ok [], blocks needed [], blocks free [])."""
+    s = store.n_slots
     v = store.slot_of_voxel.shape[0]
     m = voxel_rows.shape[0]
     idx = jnp.arange(m, dtype=jnp.int32)
@@ -212,35 +208,36 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
     new_slot = free_list[jnp.clip(rank_v[jnp.minimum(row, v - 1)], 0, k - 1)]
     take = need & ok
     tgt_slot = jnp.where(take, new_slot, s)
-    slot_of_voxel = slot_of_voxel.at[jnp.where(take, row, v)].set(new_slot, mode="drop")
-    voxel_of_slot = voxel_of_slot.at[tgt_slot].set(voxel_rows, mode="drop")
-    coord = store.coord.at[tgt_slot].set(coords, mode="drop")
-    count = count.at[tgt_slot].set(0, mode="drop")
-    received = received.at[tgt_slot].set(0, mode="drop")
-    frames_seen = frames_seen.at[tgt_slot].set(0, mode="drop")
-    last_hit = last_hit.at[tgt_slot].set(-1, mode="drop")
-    slot = jnp.where(real & ok, slot_of_voxel[jnp.minimum(row, v - 1)], s)    # [M] s: skip
-    # (before the per-frame quota: every near-surface sample of the frame marks its block as hit)
-    last_hit = last_hit.at[jnp.where(surface, slot, s)].set(frame, mode="drop")
-    rank, n_in = ranks_within_slot(slot, s)
-    ss = jnp.minimum(slot, s - 1)
-    q = pairs_per_frame
-    if q > 0:
-        # The per-frame quota: of the n pairs a frame brings to a block keep q evenly spaced ones;
-        # k numbers the kept ones 0..q-1 (rank r is kept where floor((r+1) q / n) steps up).
-        n_s = jnp.maximum(n_in[ss], 1)
-        few = n_s <= q
-        k_hi = ((rank + 1) * q) // n_s
-        kept = few | (k_hi > (rank * q) // n_s)
-        rank = jnp.where(few, rank, k_hi - 1)
-        slot = jnp.where(kept, slot, s)
-        n_in = jnp.minimum(n_in, q)
-    i = received[ss] + rank                                                    # index in the block's stream
+    blocks = _Blocks(
+        slot_of_voxel=slot_of_voxel.at[jnp.where(take, row, v)].set(new_slot, mode="drop"),
+        voxel_of_slot=voxel_of_slot.at[tgt_slot].set(voxel_rows, mode="drop"),
+        coord=store.coord.at[tgt_slot].set(coords, mode="drop"),
+        count=count.at[tgt_slot].set(0, mode="drop"),
+        received=received.at[tgt_slot].set(0, mode="drop"),
+        frames_seen=frames_seen.at[tgt_slot].set(0, mode="drop"),
+        last_hit=last_hit.at[tgt_slot].set(-1, mode="drop"))
+    slot = jnp.where(real & ok, blocks.slot_of_voxel[jnp.minimum(row, v - 1)], s)    # [M] s: skip
+    return blocks, slot, ok, n_need, n_free
+
+
+def frame_quota(slot, rank, n_in, ss, q: int, s: int):
+    """The per-frame quota: of the n pairs a frame brings to a block keep q evenly spaced ones;
+    the kept ones are renumbered 0..q-1 (rank r is kept where floor((r+1) q / n) steps up).
+    Returns (slot [M] (s: not kept), rank [M], n_in [S])."""
+    n_s = jnp.maximum(n_in[ss], 1)
+    few = n_s <= q
+    k_hi = ((rank + 1) * q) // n_s
+    kept = few | (k_hi > (rank * q) // n_s)
+    return jnp.where(kept, slot, s), jnp.where(few, rank, k_hi - 1), jnp.minimum(n_in, q)
+
+
+def block_positions(policy: str, key, slot, rank, n_in, i, ss, s: int, p: int):
+    """Where in its block each pair goes under `policy`: (block [M] (s: nowhere), position [M]).
+    i: [M] the pair's index in its block's stream of pairs."""
     if policy == "ring":
         # The r-th of n pairs goes to position (received + r) % P; the newest P survive.
-        tgt = jnp.where((slot < s) & (rank >= n_in[ss] - p), slot, s)
-        pos = i % p
-    elif policy == "reservoir":
+        return jnp.where((slot < s) & (rank >= n_in[ss] - p), slot, s), i % p
+    if policy == "reservoir":
         # Algorithm R: the i-th pair fills position i while the block has room, else replaces a
         # uniform position j in [0, i] if j < P. Pairs of one frame that draw the same position
         # resolve as a sequential pass would: the later one wins (a scatter-max of the rank).
@@ -249,18 +246,48 @@ def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame,
         cand = jnp.where((slot < s) & (pos < p), slot, s)
         pos = jnp.minimum(pos, p - 1)
         winner = jnp.full((s, p), -1, jnp.int32).at[cand, pos].max(rank, mode="drop")
-        tgt = jnp.where((cand < s) & (winner[jnp.minimum(cand, s - 1), pos] == rank), cand, s)
-    else:
-        raise ValueError(f"window.block_policy must be one of {BLOCK_POLICIES}, got {policy!r}")
+        return jnp.where((cand < s) & (winner[jnp.minimum(cand, s - 1), pos] == rank), cand, s), pos
+    raise ValueError(f"window.block_policy must be one of {BLOCK_POLICIES}, got {policy!r}")
+
+
+def update(store: PairStore, voxel_rows, coords, points, labels, surface, frame, center_vox, allowed=True,
+           key=None, *, radius_vox: int, policy: str = "ring",
+           pairs_per_frame: int = 0):
+    """Slide the window, give a block to every voxel of the batch that has none, append the pairs.
+
+    voxel_rows: [M] int32 voxel row of each pair (-1 = drop the pair); coords: [M, 3] int32 leaf-voxel
+    coordinates; points: [M, 3] float32 map frame; labels: [M]; surface: [M] bool; frame: [] int32;
+    center_vox: [3] int32 leaf voxel of the sensor; allowed: [] bool, False makes it a no-op.
+
+    All or nothing: if more voxels need a block than there are free blocks after the slide, or
+    `allowed` is False, the store comes back unchanged with `ok = False` (the caller grows the store
+    outside jit and retries; no pair is ever dropped for capacity). What a block keeps is `policy`
+    (module docstring): "ring", the newest P pairs (within a frame, later pairs of the batch are
+    newer); "reservoir", a uniform sample of the pairs offered (key: PRNG key of the draws).
+    pairs_per_frame > 0: a voxel is offered at most that many of a frame's pairs (evenly spaced in
+    batch order); 0 = all.
+
+    Returns (store, ids [S] int32, n [] int32: the window blocks that hold pairs, `ids[:n]`, StoreStats).
+    """
+    s, p = store.n_slots, store.block_size
+    b, slot, ok, n_need, n_free = assign_blocks(store, voxel_rows, coords, center_vox, allowed, radius_vox)
+    # (before the per-frame quota: every near-surface sample of the frame marks its block as hit)
+    last_hit = b.last_hit.at[jnp.where(surface, slot, s)].set(frame, mode="drop")
+    rank, n_in = ranks_within_slot(slot, s)
+    ss = jnp.minimum(slot, s - 1)
+    if pairs_per_frame > 0:
+        slot, rank, n_in = frame_quota(slot, rank, n_in, ss, pairs_per_frame, s)
+    i = b.received[ss] + rank                                                  # index in the block's stream
+    tgt, pos = block_positions(policy, key, slot, rank, n_in, i, ss, s, p)
     store = store.replace(
         pairs=store.pairs.at[tgt, pos].set(jnp.concatenate([points, labels[:, None]], -1), mode="drop"),
         surface=store.surface.at[tgt, pos].set(surface, mode="drop"),
         frame=store.frame.at[tgt, pos].set(frame, mode="drop"),
-        received=received + n_in,
-        frames_seen=frames_seen + (n_in > 0),
+        received=b.received + n_in,
+        frames_seen=b.frames_seen + (n_in > 0),
         last_hit=last_hit,
-        count=jnp.minimum(count + n_in, p),
-        voxel_of_slot=voxel_of_slot, slot_of_voxel=slot_of_voxel, coord=coord,
+        count=jnp.minimum(b.count + n_in, p),
+        voxel_of_slot=b.voxel_of_slot, slot_of_voxel=b.slot_of_voxel, coord=b.coord,
     )
     inside = in_window(store, center_vox, radius_vox)
     ids, n = window_slots(inside & (store.count > 0))

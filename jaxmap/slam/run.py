@@ -34,8 +34,8 @@ import numpy as np
 
 from jaxmap.config import MapConfig, SlamConfig, load_config, save_config
 from jaxmap.errors import DataError, JaxmapError
-from jaxmap.frame_loop import (Frame, LoopResult, Prefetcher, Progress, finish_run, open_run_sequence, open_viewer,
-                               run_frames)
+from jaxmap.finish import finish_run
+from jaxmap.frame_loop import Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.mapper import N3Mapper

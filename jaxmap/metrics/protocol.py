@@ -1,47 +1,7 @@
-"""Reconstruction metrics: the N3-Mapping / SHINE-Mapping evaluation protocol (README: Evaluation protocol).
+"""The evaluation protocol on points and meshes in memory (the package docstring, `jaxmap.metrics`,
+describes it): culling, cropping, sampling, down-sampling, the metrics and their table.
 
-The default protocol ("shine") is a literal implementation of SHINE-Mapping's ``eval_mesh``
-(``utils/eval_utils.py``) with its MaiCity settings, which N3-Mapping reports with; world frame, metres in,
-centimetres / percent out:
-
-1. GT points are restricted to the observed region: points farther than ``cull_distance_m`` from every
-   observed scan point (of the mapped frames, inside the mapper's range crop) are dropped, and with
-   ``eval_radius_m > 0`` those farther than that from every sensor position (:func:`cull_gt`).
-2. The predicted mesh is cropped to the axis-aligned bounding box of the kept GT points with z grown by
-   the down-sampling voxel (2 cm), as open3d's ``mesh.crop(AxisAlignedBoundingBox)``: a triangle is
-   kept when its three vertices are inside the box (:func:`crop_mesh`). (x and y are grown by 2 cm too,
-   where SHINE grows only z: see CROP_XY_GROW_M.)
-3. The cropped mesh is sampled as open3d's ``sample_points_uniformly`` (``n_samples`` points, 10 M in
-   SHINE; :func:`sample_points_uniformly`), and both point sets are voxel-down-sampled at 2 cm as open3d's
-   ``voxel_down_sample`` (the mean of the points in each voxel; :func:`voxel_down_sample`).
-4. Accuracy = mean distance from each predicted point to its nearest GT point over the predicted points
-   closer than ``acc_truncation_m`` = 0.2 m (the others are dropped); Precision = % of those kept closer
-   than the threshold. Completion = mean distance from each GT point to its nearest predicted point,
-   distances >= ``comp_truncation_m`` = 2.0 m counted as 2.0 m (SHINE's ``nn_correspondance`` with
-   ``ignore_outlier=False``); Completion ratio = % of GT points closer than the threshold.
-   Chamfer-L1 = (Accuracy + Completion) / 2; F-score = 2 P R / (P + R) with R = completion ratio.
-   The threshold is 10 cm outdoors (configs/city.yaml) and 5 cm indoors (the room configs).
-
-Every metrics dict carries ``"protocol": "shine"``. :func:`protocol_floor` is the same protocol with the
-GT mesh itself as the prediction: the best score the protocol can give on that data (the sampling
-floor), printed beside every table. With per-point GT classes (``gt_points.ply`` of ``jaxmap synth``),
-:func:`signed_error_by_class` gives the mean signed distance of the predicted surface to the GT surface
-per class (negative = the surface sinks below / into the true one).
-
-Nothing here measures accuracy against the GT *mesh*: its hidden and never-observed faces would absorb
-misplaced surface. ``protocol="surface"`` (``jaxmap eval --protocol surface``) adds one exact
-surface-to-surface figure as an extra field, ``completion_surface_cm``: each kept GT point's distance to
-the predicted *mesh* (open3d's BVH distance, clamped at 2 m), which has no sampling floor.
-
-Beside the protocol (it drops predicted points farther than 0.2 m from the GT, so floaters and ghost
-surfaces are invisible to it) every metrics dict also has pred_far_share (% of the down-sampled predicted
-points so dropped), precision_all and f_score_all (precision and F-score with every predicted point
-counted, far ones as misses). When a sequence has moving objects (:mod:`jaxmap.moving`), the observed
-region comes from static hits only and :func:`evaluate_mesh_file` adds ghost_area_m2: the predicted
-surface (m^2, per kind) inside space only moving objects occupied, farther than 0.15 m from the static GT.
-
-This module imports numpy at import time only (scipy, trimesh and open3d lazily), so it runs on
-machines without open3d; open3d is only used for ``completion_surface_cm``.
+numpy at import time only (scipy, trimesh and open3d lazily).
 """
 from __future__ import annotations
 
@@ -51,10 +11,9 @@ import os
 
 import numpy as np
 
-from jaxmap import moving
 from jaxmap.errors import DataError
 
-log = logging.getLogger(__name__)
+log = logging.getLogger("jaxmap.metrics")
 
 PROTOCOL = "shine"
 PROTOCOLS = ("shine", "surface")  # "surface": shine + the extra field completion_surface_cm
@@ -293,7 +252,7 @@ def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m:
     }
 
 
-def _culled_or_fail(gt_points, cull_distance_m, eval_radius_m, **kw):
+def culled_or_fail(gt_points, cull_distance_m, eval_radius_m, **kw):
     gt, idx = cull_gt(gt_points, cull_distance_m=cull_distance_m, eval_radius_m=eval_radius_m, return_index=True,
                       **kw)
     if len(gt) == 0:
@@ -324,7 +283,7 @@ def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_point
     Returns: dict with the keys of METRIC_KEYS (+ n_pred_far); see :func:`protocol_metrics`.
     """
     pred = _as_points(pred_points, "pred_points")
-    gt, _ = _culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
+    gt, _ = culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
                             sensor_positions=sensor_positions)
     lo, hi = crop_box(gt, down_sample_m)
     pred = pred[np.all((pred >= lo) & (pred <= hi), axis=1)]
@@ -333,7 +292,7 @@ def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_point
     return protocol_metrics(pred, gt, threshold_m, acc_truncation_m, comp_truncation_m)
 
 
-def _load_mesh(mesh, where: str = "mesh"):
+def load_mesh(mesh, where: str = "mesh"):
     import trimesh
 
     if isinstance(mesh, trimesh.Trimesh):
@@ -360,7 +319,7 @@ def sample_mesh(mesh, n: int, seed: int = 0) -> np.ndarray:
 
     Returns: [n,3] float64 points in the mesh's frame.
     """
-    m = _load_mesh(mesh)
+    m = load_mesh(mesh)
     faces = np.asarray(m.faces)
     if len(faces) == 0:
         raise DataError("the mesh has zero faces: nothing to sample (did the method produce a surface?)")
@@ -408,12 +367,12 @@ def signed_error_by_class(pred_points, gt_points, gt_normals, gt_classes, class_
     return out
 
 
-def _mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
-    m = _load_mesh(mesh)
+def mesh_arrays(mesh) -> tuple[np.ndarray, np.ndarray]:
+    m = load_mesh(mesh)
     return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.faces, dtype=np.int64).reshape(-1, 3)
 
 
-def _evaluate_culled(vertices, faces, gt, *, threshold_m, n_samples, seed, down_sample_m, acc_truncation_m,
+def evaluate_culled(vertices, faces, gt, *, threshold_m, n_samples, seed, down_sample_m, acc_truncation_m,
                      comp_truncation_m):
     """Steps 2-4 on an already culled GT [G,3]: (metrics, predicted points after crop and down-sampling)."""
     lo, hi = crop_box(gt, down_sample_m)
@@ -445,18 +404,18 @@ def evaluate_mesh(mesh, gt_points, *, n_samples: int = N_SAMPLES, seed: int = 0,
     exact, clamped at comp_truncation_m; needs open3d). Nothing is measured against the GT mesh."""
     if protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
-    v, f = _mesh_arrays(mesh)
-    gt, _ = _culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
+    v, f = mesh_arrays(mesh)
+    gt, _ = culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
                             sensor_positions=sensor_positions)
-    m, _ = _evaluate_culled(v, f, gt, threshold_m=threshold_m, n_samples=n_samples, seed=seed,
+    m, _ = evaluate_culled(v, f, gt, threshold_m=threshold_m, n_samples=n_samples, seed=seed,
                             down_sample_m=down_sample_m, acc_truncation_m=acc_truncation_m,
                             comp_truncation_m=comp_truncation_m)
     if protocol == "surface":
-        m.update(_surface_fields(v, f, gt, comp_truncation_m, down_sample_m))
+        m.update(surface_fields(v, f, gt, comp_truncation_m, down_sample_m))
     return m
 
 
-def _surface_fields(v, f, gt, comp_truncation_m, down_sample_m) -> dict:
+def surface_fields(v, f, gt, comp_truncation_m, down_sample_m) -> dict:
     import trimesh
 
     vc, fc = crop_mesh(v, f, *crop_box(gt, down_sample_m))
@@ -484,240 +443,10 @@ def protocol_floor(gt_mesh, gt_points, max_edge_m: float = FLOOR_MAX_EDGE_M, **k
     subdivided to edges <= max_edge_m, so that the crop (which keeps whole triangles) does not drop a
     20 m facade triangle that crosses the box; the surface is unchanged (only a strip narrower than
     max_edge_m along the box's sides is lost, as for any mesh)."""
-    v, f = _mesh_arrays(gt_mesh)
+    v, f = mesh_arrays(gt_mesh)
     import trimesh
 
     return evaluate_mesh(trimesh.Trimesh(*subdivide_mesh(v, f, max_edge_m), process=False), gt_points, **kw)
-
-
-def voxel_thin(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Keep one point (the first) per voxel of size voxel_m. points [N,3] -> [N',3], same dtype."""
-    if len(points) == 0:
-        return points
-    q = np.floor(points / voxel_m).astype(np.int64)
-    q -= q.min(axis=0)
-    span = q.max(axis=0) + 1
-    if np.prod(span.astype(np.float64)) < 2**62:
-        key = (q[:, 0] * span[1] + q[:, 1]) * span[2] + q[:, 2]
-        _, idx = np.unique(key, return_index=True)
-    else:
-        _, idx = np.unique(q, axis=0, return_index=True)
-    return points[np.sort(idx)]
-
-def observed_points_of(data_dir, voxel_m: float = OBSERVED_VOXEL_M, max_frames: int | None = None,
-                       progress: bool = False, begin_frame: int = 0, end_frame: int = -1,
-                       every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0,
-                       exclude_moving: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """All scan points of a sequence in the world frame, thinned to one per voxel_m voxel, and the sensor
-    positions (pose translations of every frame). Returns (observed [O,3] float64, sensors [S,3] float64).
-
-    max_frames: use at most this many frames, evenly spaced, for the observed points (all frames'
-    positions are still returned). begin_frame/end_frame/every_frame: the frames a run mapped.
-    min_range_m/max_range_m (> 0): keep only scan points in that range of their sensor, i.e. what a
-    mapper that crops its input saw (GT seen only from farther away cannot be reconstructed by it).
-    exclude_moving: when the sequence has moving objects (:func:`jaxmap.moving.load_moving_objects`), the
-    scan points of frame i inside frame i's boxes (grown by jaxmap.moving.GHOST_INFLATE_M) are left out:
-    the observed region comes from static hits only (the boxes are indexed by the real frame number).
-    """
-    from jaxmap.geometry import transform_points
-    from jaxmap.io import open_sequence
-
-    objects = moving.load_moving_objects(data_dir) if exclude_moving else None
-    sel = dict(begin_frame=begin_frame, end_frame=end_frame)
-    seq = open_sequence(data_dir, every_frame=every_frame, **sel)
-    poses = np.asarray(seq.poses, dtype=np.float64)
-    sensors = poses[:, :3, 3].copy()
-    if max_frames is not None and max_frames > 0 and len(seq) > max_frames:
-        step = int(math.ceil(len(seq) / max_frames))
-        seq = open_sequence(data_dir, every_frame=every_frame * step, **sel)
-    chunks: list[np.ndarray] = []
-    pending = 0
-    frames = seq
-    if progress:
-        from tqdm import tqdm
-
-        frames = tqdm(seq, total=len(seq), desc="observed points", unit="frame")
-    for frame in frames:
-        pts = np.asarray(frame.points, dtype=np.float64)
-        if max_range_m > 0 or min_range_m > 0:
-            r = np.linalg.norm(pts, axis=1)
-            pts = pts[(r >= min_range_m) & ((r <= max_range_m) | (max_range_m <= 0))]
-        if len(pts) == 0:
-            continue
-        w = transform_points(np.asarray(frame.pose, dtype=np.float64), pts)
-        if objects is not None:
-            w = w[~moving.inside_boxes(w, objects.boxes_at(frame.index), moving.GHOST_INFLATE_M)]
-            if len(w) == 0:
-                continue
-        chunks.append(voxel_thin(w, voxel_m))
-        pending += len(chunks[-1])
-        if len(chunks) > 1 and pending > 4_000_000:
-            chunks = [voxel_thin(np.concatenate(chunks, axis=0), voxel_m)]
-            pending = len(chunks[0])
-    if not chunks:
-        raise DataError(f"{data_dir}: the sequence has no scan points, so nothing was observed")
-    obs = voxel_thin(np.concatenate(chunks, axis=0), voxel_m)
-    return obs, sensors
-
-
-def read_gt(data_dir) -> dict:
-    """The ground truth of a sequence directory: {"points" [G,3] float64, "normals" [G,3] or None,
-    "classes" [G] uint8 or None, "class_names" list or None, "mesh" path of gt_mesh.ply or None}.
-
-    Class names come from meta.json ("gt": {"classes": [...]}), as `jaxmap synth` writes them."""
-    import json
-
-    from jaxmap.io import read_points_ply
-
-    data_dir = os.fspath(data_dir)
-    gt_path = os.path.join(data_dir, "gt_points.ply")
-    if not os.path.isdir(data_dir):
-        raise DataError(f"data directory not found: {data_dir}")
-    if not os.path.isfile(gt_path):
-        raise DataError(f"{data_dir}: no gt_points.ply (ground-truth surface points); "
-                        "`jaxmap synth` writes one, or convert the dataset's GT cloud to PLY")
-    pts, nrm, cls = read_points_ply(gt_path, return_normals=True, return_classes=True)
-    pts = np.asarray(pts, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
-        raise DataError(f"{gt_path}: expected a non-empty point cloud, got shape {pts.shape}")
-    names = None
-    meta_path = os.path.join(data_dir, "meta.json")
-    if cls is not None and os.path.isfile(meta_path):
-        with open(meta_path) as f:
-            names = (json.load(f).get("gt") or {}).get("classes")
-    mesh = os.path.join(data_dir, "gt_mesh.ply")
-    return {"points": pts[:, :3], "normals": nrm, "classes": cls, "class_names": names,
-            "mesh": mesh if os.path.isfile(mesh) else None}
-
-
-def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_distance_m: float = 0.3,
-                       eval_radius_m: float = -1.0, n_samples: int = N_SAMPLES,
-                       max_frames_for_culling: int | None = None, begin_frame: int = 0, end_frame: int = -1,
-                       every_frame: int = 1, min_range_m: float = 0.0, max_range_m: float = -1.0,
-                       floor: bool = False, protocol: str = PROTOCOL, seed: int = 0, ghost: bool = True) -> dict:
-    """Metrics of a mesh file against a sequence directory's ground truth (what `jaxmap eval` prints).
-
-    Reads the mesh (PLY/OBJ/... via trimesh), ``data_dir/gt_points.ply`` (GT surface points, world frame,
-    with normals and classes when `jaxmap synth` wrote it) and every scan of the sequence (observed
-    points = scan points in the world frame, thinned to 5 cm; sensor positions = pose translations), and
-    applies the protocol (module docstring). begin/end/every_frame select the frames whose scans count as
-    observed (those a run mapped); min/max_range_m crop them as the mapper did.
-
-    Returns the dict of METRIC_KEYS (+ n_pred_far, n_pred_samples), plus "signed_error_cm" (per GT class,
-    :func:`signed_error_by_class`) when the GT has classes, "completion_surface_cm" with
-    protocol="surface", and with floor=True "floor": the same protocol with ``gt_mesh.ply`` as the
-    prediction (:func:`protocol_floor`; left out with a warning when the data has no GT mesh).
-
-    When the sequence has moving objects (moving_objects.json or pedestrians.json, :mod:`jaxmap.moving`),
-    the observed points come from static hits only (:func:`observed_points_of`), and with ghost=True the
-    result has "ghost_area_m2" {kind: m^2, ..., "total": m^2}: the area of the whole predicted mesh (not
-    cropped) inside the union of the boxes of the selected frames grown by 0.1 m and farther than 0.15 m
-    from every GT point (:func:`jaxmap.moving.ghost_area`); the floor gets one too (~0 for a sound GT).
-    """
-    if protocol not in PROTOCOLS:
-        raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
-    mesh_path = os.fspath(mesh_path)
-    data_dir = os.fspath(data_dir)
-    if not os.path.isfile(mesh_path):
-        raise DataError(f"mesh file not found: {mesh_path}")
-    gtd = read_gt(data_dir)
-    mesh = _load_mesh(mesh_path)
-    if len(mesh.faces) == 0:
-        raise DataError(f"{mesh_path}: the mesh has zero faces (and {len(mesh.vertices)} vertices); "
-                        "there is no surface to evaluate")
-    observed, sensors = observed_points_of(data_dir, max_frames=max_frames_for_culling, begin_frame=begin_frame,
-                                           end_frame=end_frame, every_frame=every_frame,
-                                           min_range_m=min_range_m, max_range_m=max_range_m)
-    log.info("eval: %d GT points, %d observed points (5 cm), %d sensor positions",
-             len(gtd["points"]), len(observed), len(sensors))
-    gt, idx = _culled_or_fail(gtd["points"], cull_distance_m, eval_radius_m, observed_points=observed,
-                              sensor_positions=sensors)
-    kw = dict(threshold_m=threshold_m, n_samples=n_samples, seed=seed, down_sample_m=DOWN_SAMPLE_M,
-              acc_truncation_m=ACC_TRUNCATION_M, comp_truncation_m=COMP_TRUNCATION_M)
-    v, f = _mesh_arrays(mesh)
-    m, pred = _evaluate_culled(v, f, gt, **kw)
-    if protocol == "surface":
-        m.update(_surface_fields(v, f, gt, COMP_TRUNCATION_M, DOWN_SAMPLE_M))
-    ghost_boxes = _ghost_boxes(data_dir, begin_frame, end_frame, every_frame) if ghost else None
-    if ghost_boxes is not None:
-        m["ghost_area_m2"] = moving.ghost_area(v, f, gtd["points"], ghost_boxes)
-    has_classes = gtd["classes"] is not None and gtd["normals"] is not None and gtd["class_names"]
-    if has_classes:
-        m["signed_error_cm"] = signed_error_by_class(pred, gt, gtd["normals"][idx], gtd["classes"][idx],
-                                                     gtd["class_names"])
-    if floor:
-        if gtd["mesh"] is None:
-            log.warning("%s has no gt_mesh.ply: no protocol floor", data_dir)
-        else:
-            key = _floor_key(data_dir, gtd, kw, cull_distance_m=cull_distance_m, eval_radius_m=eval_radius_m,
-                             max_frames_for_culling=max_frames_for_culling, begin_frame=begin_frame,
-                             end_frame=end_frame, every_frame=every_frame, min_range_m=min_range_m,
-                             max_range_m=max_range_m, ghost=ghost_boxes is not None)
-            fm = _floor_cache(data_dir).get(key)
-            if fm is None:
-                fv, ff = subdivide_mesh(*_mesh_arrays(gtd["mesh"]))
-                fm, fpred = _evaluate_culled(fv, ff, gt, **kw)
-                if ghost_boxes is not None:
-                    fm["ghost_area_m2"] = moving.ghost_area(fv, ff, gtd["points"], ghost_boxes)
-                if has_classes:
-                    fm["signed_error_cm"] = signed_error_by_class(fpred, gt, gtd["normals"][idx],
-                                                                  gtd["classes"][idx], gtd["class_names"])
-                _floor_cache_put(data_dir, key, fm)
-            m["floor"] = fm
-    return m
-
-
-FLOOR_CACHE = ".jaxmap_floor_cache.json"
-
-
-def _ghost_boxes(data_dir: str, begin_frame: int, end_frame: int, every_frame: int):
-    """The moving objects' boxes of the selected frames (real frame numbers), or None when the sequence
-    has no moving objects."""
-    from jaxmap.io import open_sequence
-
-    objects = moving.load_moving_objects(data_dir)
-    if objects is None:
-        return None
-    seq = open_sequence(data_dir, begin_frame=begin_frame, end_frame=end_frame, every_frame=every_frame)
-    return objects.boxes_of_frames(int(i) for i in seq.indices)
-
-def _floor_key(data_dir: str, gtd: dict, kw: dict, **selection) -> str:
-    """What the floor depends on: the GT files (size and mtime), the scans' directory listing time and
-    every protocol setting. The floor of a scene costs a full evaluation (minutes at 10M samples) and
-    is the same for every run of that scene, so it is cached next to the data."""
-    import hashlib
-    import json
-
-    files = [os.path.join(data_dir, "gt_points.ply"), gtd["mesh"], os.path.join(data_dir, "poses.txt"),
-             moving.moving_objects_path(data_dir)]  # (moving objects: static-only observations, ghost area)
-    stat = [(os.path.basename(f), os.path.getsize(f), os.path.getmtime(f)) for f in files if f and os.path.isfile(f)]
-    blob = json.dumps({"files": stat, "kw": kw, "sel": selection, "protocol": PROTOCOL}, sort_keys=True, default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:20]
-
-
-def _floor_cache(data_dir: str) -> dict:
-    import json
-
-    try:
-        with open(os.path.join(data_dir, FLOOR_CACHE)) as f:
-            return json.load(f)
-    except (OSError, ValueError):
-        return {}
-
-
-def _floor_cache_put(data_dir: str, key: str, floor_metrics: dict) -> None:
-    """Best effort: a read-only data directory just means the floor is recomputed next time."""
-    import json
-
-    cache = _floor_cache(data_dir)
-    cache[key] = floor_metrics
-    tmp = os.path.join(data_dir, f"{FLOOR_CACHE}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            json.dump(cache, f)
-        os.replace(tmp, os.path.join(data_dir, FLOOR_CACHE))
-    except OSError as e:
-        log.debug("floor cache not written in %s (%s)", data_dir, e)
 
 
 def format_metrics(m: dict, name: str = "mesh") -> str:
