@@ -253,6 +253,35 @@ def inside_boxes(points, boxes: Boxes, inflate_m: float = 0.0, return_box: bool 
     if len(sel) == 0:
         return (inside, best_box) if return_box else inside
     q = pts[sel]
+    order, rbox, start, length = _candidate_runs(q, p, half, lo[:2], inflate_m)
+    if len(rbox) == 0:
+        return (inside, best_box) if return_box else inside
+    centre = boxes.centres()
+    best_d = np.full(len(sel), np.inf)
+    for j, b in _pairs_inside(q, p, inflate_m, z_lo, z_hi, order, rbox, start, length):
+        if not return_box:
+            inside[sel[j]] = True
+            continue
+        # the nearest centre per point without a sort: the running minimum, then the pairs that attain it
+        # (a later piece that finds a nearer box overwrites; ties keep one of the tied boxes)
+        dist = np.linalg.norm(q[j] - centre[b], axis=1)
+        np.minimum.at(best_d, j, dist)
+        hit = dist <= best_d[j]
+        best_box[sel[j[hit]]] = b[hit]
+    if not return_box:
+        return inside
+    inside = best_box >= 0
+    return (inside, best_box) if return_box else inside
+
+
+def _candidate_runs(q: np.ndarray, p: np.ndarray, half: np.ndarray, lo: np.ndarray, inflate_m: float):
+    """The (point, box) candidate pairs of inside_boxes as runs of grid-sorted points.
+
+    q: [M,3] points (world frame) inside the boxes' joint bounding box, whose x, y minimum is lo [2];
+    p: [B,7] box params; half: [B,2] their footprints' half extents. Returns (order [M]: q's indices
+    sorted by grid cell, rbox [R]: the box of each run, start [R] and length [R] > 0: each run's slice of
+    `order`), one run per grid row under a box's footprint that holds points.
+    """
     cell = float(np.clip(0.5 * np.median(np.minimum(p[:, 4], p[:, 5])) + inflate_m, 0.1, 2.0))
     ix = np.floor((q[:, 0] - lo[0]) / cell).astype(np.int64)
     iy = np.floor((q[:, 1] - lo[1]) / cell).astype(np.int64)
@@ -272,14 +301,15 @@ def inside_boxes(points, boxes: Boxes, inflate_m: float = 0.0, return_box: bool 
     end = np.searchsorted(skey, rx * ny + by1[rbox], side="right")
     length = end - start
     keep = length > 0
-    rbox, start, length = rbox[keep], start[keep], length[keep]
-    if len(rbox) == 0:
-        return (inside, best_box) if return_box else inside
+    return order, rbox[keep], start[keep], length[keep]
+
+
+def _pairs_inside(q, p, inflate_m, z_lo, z_hi, order, rbox, start, length):
+    """Test the candidate pairs of `_candidate_runs` in the boxes' frames, in pieces of at most
+    _MAX_CANDIDATES pairs (a single run may exceed it); yields per piece (j, b), the pairs where point
+    q[j] lies inside box b grown by inflate_m (z_lo, z_hi [B]: the grown boxes' bottom and top)."""
     cos, sin = np.cos(p[:, 3]), np.sin(p[:, 3])
     hl, hw = 0.5 * p[:, 4] + inflate_m, 0.5 * p[:, 5] + inflate_m
-    centre = boxes.centres()
-    best_d = np.full(len(sel), np.inf)
-    # pieces of runs with at most _MAX_CANDIDATES pairs (a single run may exceed it)
     cum = np.cumsum(length)
     cuts = np.searchsorted(cum, np.arange(_MAX_CANDIDATES, cum[-1], _MAX_CANDIDATES), side="left") + 1
     bounds = np.unique(np.r_[0, np.minimum(cuts, len(rbox)), len(rbox)])
@@ -288,28 +318,15 @@ def inside_boxes(points, boxes: Boxes, inflate_m: float = 0.0, return_box: bool 
         tot = int(ln.sum())
         b = np.repeat(rbox[r0:r1], ln)
         k = np.repeat(start[r0:r1] - (np.cumsum(ln) - ln), ln) + np.arange(tot)
-        j = order[k]  # index into q / sel
+        j = order[k]  # index into q
         d = q[j, :2] - p[b, :2]
         along = d[:, 0] * cos[b] + d[:, 1] * sin[b]
         across = -d[:, 0] * sin[b] + d[:, 1] * cos[b]
         z = q[j, 2]
         ok = (np.abs(along) <= hl[b]) & (np.abs(across) <= hw[b]) & (z >= z_lo[b]) & (z <= z_hi[b])
         j, b = j[ok], b[ok]
-        if not len(j):
-            continue
-        if not return_box:
-            inside[sel[j]] = True
-            continue
-        # the nearest centre per point without a sort: the running minimum, then the pairs that attain it
-        # (a later piece that finds a nearer box overwrites; ties keep one of the tied boxes)
-        dist = np.linalg.norm(q[j] - centre[b], axis=1)
-        np.minimum.at(best_d, j, dist)
-        hit = dist <= best_d[j]
-        best_box[sel[j[hit]]] = b[hit]
-    if not return_box:
-        return inside
-    inside = best_box >= 0
-    return (inside, best_box) if return_box else inside
+        if len(j):
+            yield j, b
 
 
 GHOST_INFLATE_M = 0.1   # the moving objects' boxes are grown by this for the ghost area and static observations
@@ -376,41 +393,49 @@ def ghost_area(vertices, faces, gt_points, boxes: Boxes, inflate_m: float = GHOS
     tree = cKDTree(gt) if len(gt) else None
     tri = v[f]
     while True:
-        cen = tri.mean(axis=1)
-        rad = np.linalg.norm(tri - cen[:, None, :], axis=2).max(axis=1)
-        area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
-        final = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1) <= max_edge_m * (1 + 1e-9)
-        slack = np.where(final, 0.0, rad)  # final triangles: decided by their centroid alone
-        # outside every grown box (radii bucketed geometrically: inside_boxes takes one inflation)
-        maybe = np.zeros(len(tri), bool)
-        rest = np.ones(len(tri), bool)
-        bound = 0.05
-        while rest.any():
-            sel = rest & ((slack <= bound) | (bound > 50.0))
-            if sel.any():
-                maybe[sel] = inside_boxes(cen[sel], boxes, inflate_m + bound)
-            rest &= ~sel
-            bound *= 3.0
-        tri, cen, slack, area, final = tri[maybe], cen[maybe], slack[maybe], area[maybe], final[maybe]
-        if tree is not None and len(tri):
-            d, _ = tree.query(cen, k=1, distance_upper_bound=static_m + slack.max() + 1e-9, workers=-1)
-        else:
-            d = np.full(len(tri), np.inf)
-        keep = ~(d <= static_m - slack) if len(tri) else np.zeros(0, bool)  # not surely near the GT
-        far = d > static_m + slack                                            # surely far from it
-        tri, cen, slack, area, final, far = tri[keep], cen[keep], slack[keep], area[keep], final[keep], far[keep]
-        # surely inside a box: inside one shrunk by the radius (final ones: the centroid inside one grown box)
-        ins, box = inside_boxes(cen, boxes, inflate_m, return_box=True)
-        sure = ins & far & (final | (slack <= 0))
-        if (~final).any():
-            cand = np.flatnonzero(~final & far & ins)
-            for r in np.unique(np.ceil(slack[cand] / 0.02) * 0.02):  # shrink in 2 cm buckets (conservative)
-                c = cand[np.ceil(slack[cand] / 0.02) * 0.02 == r]
-                if r < inflate_m + 0.5 * boxes.params[:, 4:7].min():  # (else no box is left)
-                    sure[c] = inside_boxes(cen[c], boxes, inflate_m - r)
-        np.add.at(per, boxes.kind[box[sure]], area[sure])
-        todo = ~sure & ~final
-        if not todo.any():
+        box, area, todo = _ghost_step(tri, boxes, tree, inflate_m, static_m, max_edge_m)
+        np.add.at(per, boxes.kind[box], area)
+        if not len(todo):
             break
-        tri = _split(tri[todo], max_edge_m)
+        tri = _split(todo, max_edge_m)
     return result()
+
+
+def _ghost_step(tri: np.ndarray, boxes: Boxes, tree, inflate_m: float, static_m: float, max_edge_m: float):
+    """One coarse-to-fine pass of ghost_area over triangles [T,3,3] (world frame; tree: the cKDTree of the
+    GT points near the boxes, or None). Returns (box [S]: the box each surely counted triangle goes to,
+    area [S]: its area, todo [T',3,3]: the undecided triangles that can still be cut)."""
+    cen = tri.mean(axis=1)
+    rad = np.linalg.norm(tri - cen[:, None, :], axis=2).max(axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    final = np.max(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2), axis=1) <= max_edge_m * (1 + 1e-9)
+    slack = np.where(final, 0.0, rad)  # final triangles: decided by their centroid alone
+    # outside every grown box (radii bucketed geometrically: inside_boxes takes one inflation)
+    maybe = np.zeros(len(tri), bool)
+    rest = np.ones(len(tri), bool)
+    bound = 0.05
+    while rest.any():
+        sel = rest & ((slack <= bound) | (bound > 50.0))
+        if sel.any():
+            maybe[sel] = inside_boxes(cen[sel], boxes, inflate_m + bound)
+        rest &= ~sel
+        bound *= 3.0
+    tri, cen, slack, area, final = tri[maybe], cen[maybe], slack[maybe], area[maybe], final[maybe]
+    if tree is not None and len(tri):
+        d, _ = tree.query(cen, k=1, distance_upper_bound=static_m + slack.max() + 1e-9, workers=-1)
+    else:
+        d = np.full(len(tri), np.inf)
+    keep = ~(d <= static_m - slack) if len(tri) else np.zeros(0, bool)  # not surely near the GT
+    far = d > static_m + slack                                            # surely far from it
+    tri, cen, slack, area, final, far = tri[keep], cen[keep], slack[keep], area[keep], final[keep], far[keep]
+    # surely inside a box: inside one shrunk by the radius (final ones: the centroid inside one grown box)
+    ins, box = inside_boxes(cen, boxes, inflate_m, return_box=True)
+    sure = ins & far & (final | (slack <= 0))
+    if (~final).any():
+        cand = np.flatnonzero(~final & far & ins)
+        for r in np.unique(np.ceil(slack[cand] / 0.02) * 0.02):  # shrink in 2 cm buckets (conservative)
+            c = cand[np.ceil(slack[cand] / 0.02) * 0.02 == r]
+            if r < inflate_m + 0.5 * boxes.params[:, 4:7].min():  # (else no box is left)
+                sure[c] = inside_boxes(cen[c], boxes, inflate_m - r)
+    todo = ~sure & ~final
+    return box[sure], area[sure], tri[todo]

@@ -134,32 +134,9 @@ def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int,
     chosen_n = np.zeros(n, np.int64)
     chosen_cov = np.zeros((n, 3, 3))
     done = np.zeros(n, bool)
-    offsets = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
     cand = np.full((n, 8 * max(knn_cap, 1)), -1)
     for lv in range(levels):
-        c = cell * (1 << lv)
-        # Cell coordinates as float32 computes them, so both sides put a point in the same cell.
-        q = np.floor(points_s / np.float32(c)).astype(np.int64)
-        cells, inverse = np.unique(q, axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        cnt = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
-        s1 = np.stack([np.bincount(inverse, p[:, d], len(cells)) for d in range(3)], 1)
-        s2 = np.stack([np.bincount(inverse, p[:, a] * p[:, b], len(cells)) for a in range(3) for b in range(3)], 1)
-        index = {tuple(cc): i for i, cc in enumerate(cells)}
-        base = np.floor(points_s / np.float32(c) - np.float32(0.5)).astype(np.int64)
-        tot_n, tot_1, tot_2 = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 9))
-        members = np.argsort(inverse, kind="stable")              # each cell's points, in input order
-        first = np.searchsorted(inverse[members], np.arange(len(cells)))
-        level_cand = np.full((n, 8, max(knn_cap, 1)), -1)
-        for oi, o in enumerate(offsets):
-            j = np.array([index.get(tuple(cc), -1) for cc in base + o])
-            hit = j >= 0
-            tot_n[hit] += cnt[j[hit]]
-            tot_1[hit] += s1[j[hit]]
-            tot_2[hit] += s2[j[hit]]
-            for i in range(knn_cap):
-                ok = hit & (i < cnt[np.maximum(j, 0)])
-                level_cand[ok, oi, i] = members[first[j[ok]] + i]
+        tot_n, tot_1, tot_2, level_cand = _cube_sums(points_s, p, cell * (1 << lv), knn_cap)
         mean = tot_1 / np.maximum(tot_n, 1)[:, None]
         cov = (tot_2 / np.maximum(tot_n, 1)[:, None]).reshape(n, 3, 3) - mean[:, :, None] * mean[:, None, :]
         take = ~done & ((tot_n >= k) | (lv == levels - 1))
@@ -184,6 +161,40 @@ def grid_normals(points_s: np.ndarray, cell: float, levels: int, k: int,
     few = chosen_n < MIN_PLANE_POINTS
     normals[few] = -p[few] / np.maximum(np.linalg.norm(p[few], axis=1, keepdims=True), 1e-9)
     return normals.astype(np.float32), chosen_n
+
+
+def _cube_sums(points_s: np.ndarray, p: np.ndarray, c: float, knn_cap: int):
+    """One level of grid_normals: the 2x2x2 cube of cells of size c nearest each point.
+
+    points_s: [N,3] float32 sensor frame, p: the same as float64. Returns the cube's point count [N],
+    coordinate sums [N,3] and outer-product sums [N,9] (float64), and candidates [N,8,max(knn_cap,1)]:
+    the first knn_cap points (input order) of each of the cube's cells, -1 where there are none.
+    """
+    n = len(points_s)
+    offsets = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)])
+    # Cell coordinates as float32 computes them, so both sides put a point in the same cell.
+    q = np.floor(points_s / np.float32(c)).astype(np.int64)
+    cells, inverse = np.unique(q, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    cnt = np.bincount(inverse, minlength=len(cells)).astype(np.float64)
+    s1 = np.stack([np.bincount(inverse, p[:, d], len(cells)) for d in range(3)], 1)
+    s2 = np.stack([np.bincount(inverse, p[:, a] * p[:, b], len(cells)) for a in range(3) for b in range(3)], 1)
+    index = {tuple(cc): i for i, cc in enumerate(cells)}
+    base = np.floor(points_s / np.float32(c) - np.float32(0.5)).astype(np.int64)
+    tot_n, tot_1, tot_2 = np.zeros(n), np.zeros((n, 3)), np.zeros((n, 9))
+    members = np.argsort(inverse, kind="stable")              # each cell's points, in input order
+    first = np.searchsorted(inverse[members], np.arange(len(cells)))
+    level_cand = np.full((n, 8, max(knn_cap, 1)), -1)
+    for oi, o in enumerate(offsets):
+        j = np.array([index.get(tuple(cc), -1) for cc in base + o])
+        hit = j >= 0
+        tot_n[hit] += cnt[j[hit]]
+        tot_1[hit] += s1[j[hit]]
+        tot_2[hit] += s2[j[hit]]
+        for i in range(knn_cap):
+            ok = hit & (i < cnt[np.maximum(j, 0)])
+            level_cand[ok, oi, i] = members[first[j[ok]] + i]
+    return tot_n, tot_1, tot_2, level_cand
 
 
 def normals_of(points_s: np.ndarray, cfg) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.io.kitti import Sequence, read_poses_for
-from jaxmap.io.pointcloud import _makedirs_for, natural_key
+from jaxmap.io.pointcloud import makedirs_for, natural_key
 
 log = logging.getLogger("jaxmap")
 
@@ -52,7 +52,7 @@ def read_intrinsics(path, default_scale: float = 1000.0):
 
 def write_intrinsics(path, fx, fy, cx, cy) -> None:
     """Write intrinsics.txt: one line 'fx fy cx cy' (exact float64 round trip)."""
-    _makedirs_for(path)
+    makedirs_for(path)
     with open(os.fspath(path), "w") as f:
         f.write(" ".join(repr(float(v)) for v in (fx, fy, cx, cy)) + "\n")
 
@@ -87,7 +87,7 @@ def write_depth_png(path, depth_u16) -> None:
     depth_u16 = np.asarray(depth_u16)
     if depth_u16.ndim != 2 or depth_u16.dtype != np.uint16:
         raise DataError(f"{path}: depth must be [H,W] uint16, got {depth_u16.shape} {depth_u16.dtype}")
-    _makedirs_for(path)
+    makedirs_for(path)
     Image.fromarray(np.ascontiguousarray(depth_u16)).save(os.fspath(path), format="PNG")
 
 

@@ -114,11 +114,12 @@ def write_scan_bin(path, points, intensity=None) -> None:
         if intensity.shape[0] != points.shape[0]:
             raise DataError(f"{path}: {intensity.shape[0]} intensities for {points.shape[0]} points")
         data[:, 3] = intensity
-    _makedirs_for(path)
+    makedirs_for(path)
     data.tofile(os.fspath(path))
 
 
-def _makedirs_for(path) -> None:
+def makedirs_for(path) -> None:
+    """Create the directory that will hold the file `path` (nothing to do for a bare file name)."""
     d = os.path.dirname(os.fspath(path))
     if d:
         os.makedirs(d, exist_ok=True)
@@ -150,98 +151,116 @@ def _parse_ply(path: str, want_faces: bool):
     """
     path = _check_file(path)
     with open(path, "rb") as f:
-        magic = f.readline().strip()
-        if magic != b"ply":
-            raise DataError(f"{path}: not a PLY file (first line is not 'ply'); re-export it as PLY")
-        fmt = None
-        elements = []  # [name, count, [(prop, dtype) or (prop, ("list", count_dtype, item_dtype))]]
-        while True:
-            line = f.readline()
-            if not line:
-                raise DataError(f"{path}: PLY header has no 'end_header'; the file is truncated or corrupt")
-            words = line.decode("ascii", errors="replace").split()
-            if not words or words[0] in ("comment", "obj_info"):
-                continue
-            if words[0] == "end_header":
-                break
-            try:
-                if words[0] == "format":
-                    fmt = words[1]
-                elif words[0] == "element":
-                    elements.append([words[1], int(words[2]), []])
-                elif words[0] == "property":
-                    if not elements:
-                        raise ValueError("property before any element")
-                    if words[1] == "list":
-                        elements[-1][2].append((words[4], ("list", _ply_type(words[2], path),
-                                                           _ply_type(words[3], path))))
-                    else:
-                        elements[-1][2].append((words[2], _ply_type(words[1], path)))
-                else:
-                    raise ValueError(f"unexpected header line {line!r}")
-            except (IndexError, ValueError) as e:
-                raise DataError(f"{path}: malformed PLY header ({e}); re-export the file") from None
-        if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-            raise DataError(f"{path}: unsupported PLY format {fmt!r}; use ascii or binary_little_endian")
+        fmt, elements = _ply_header(f, path)
         body = f.read()
-
     wanted = {"vertex"} | ({"face"} if want_faces else set())
-    out = {}
     if fmt == "ascii":
-        lines = body.decode("ascii", errors="replace").splitlines()
-        lines = [ln for ln in lines if ln.strip()]
-        pos = 0
-        for name, count, props in elements:
-            chunk = lines[pos:pos + count]
-            pos += count
-            if name not in wanted:
-                continue
-            if len(chunk) < count:
-                raise DataError(f"{path}: PLY declares {count} '{name}' rows, file has {len(chunk)}; truncated")
-            out[name] = _ascii_rows(chunk, props, path, name)
+        out = _ply_ascii_body(body, elements, wanted, path)
     else:
-        endian = "<" if fmt == "binary_little_endian" else ">"
-        offset = 0
-        for name, count, props in elements:
-            has_list = any(isinstance(t, tuple) for _, t in props)
-            if not has_list:
-                dt = np.dtype([(p, endian + t) for p, t in props])
-                nbytes = dt.itemsize * count
-                if offset + nbytes > len(body):
-                    raise DataError(f"{path}: PLY declares {count} '{name}' rows ({nbytes} bytes) but the file "
-                                    f"has only {len(body) - offset} bytes left; the file is truncated")
-                if name in wanted:
-                    arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
-                    out[name] = {p: arr[p] for p, _ in props}
-                offset += nbytes
-                continue
-            if count == 0:
-                out[name] = {p: np.zeros((0, 3)) for p, _ in props}
-                continue
-            # A list element: only the common case (one list property, same length each row) is vectorised.
-            if len(props) != 1:
-                if name in wanted:
-                    raise DataError(f"{path}: PLY element '{name}' mixes list and scalar properties; "
-                                    "re-export with only vertex_indices")
-                break  # nothing after an unsupported element is needed
-            pname, (_, ct, it) = props[0]
-            first = int(np.frombuffer(body, dtype=endian + ct, count=1, offset=offset)[0])
-            dt = np.dtype([("n", endian + ct), ("v", endian + it, (first,))])
-            nbytes = dt.itemsize * count
-            if offset + nbytes > len(body):
-                raise DataError(f"{path}: PLY '{name}' rows are truncated or have mixed lengths; "
-                                "only meshes with one polygon size (e.g. triangles) are supported")
-            arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
-            if np.any(arr["n"] != first):
-                raise DataError(f"{path}: PLY '{name}' rows have mixed lengths; triangulate the mesh first")
-            if name in wanted:
-                out[name] = {pname: arr["v"]}
-            offset += nbytes
+        out = _ply_binary_body(body, elements, wanted, "<" if fmt == "binary_little_endian" else ">", path)
     if "vertex" not in out:
         raise DataError(f"{path}: PLY has no 'vertex' element; not a point cloud or mesh")
     for c in "xyz":
         if c not in out["vertex"]:
             raise DataError(f"{path}: PLY vertices lack property '{c}'")
+    return out
+
+
+def _ply_header(f, path: str):
+    """Read a PLY header from the open binary file f, leaving f at the body: (format, elements), elements
+    [[name, count, [(prop, dtype) or (prop, ("list", count_dtype, item_dtype))]]] in file order."""
+    magic = f.readline().strip()
+    if magic != b"ply":
+        raise DataError(f"{path}: not a PLY file (first line is not 'ply'); re-export it as PLY")
+    fmt = None
+    elements = []
+    while True:
+        line = f.readline()
+        if not line:
+            raise DataError(f"{path}: PLY header has no 'end_header'; the file is truncated or corrupt")
+        words = line.decode("ascii", errors="replace").split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        if words[0] == "end_header":
+            break
+        try:
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                elements.append([words[1], int(words[2]), []])
+            elif words[0] == "property":
+                if not elements:
+                    raise ValueError("property before any element")
+                if words[1] == "list":
+                    elements[-1][2].append((words[4], ("list", _ply_type(words[2], path),
+                                                       _ply_type(words[3], path))))
+                else:
+                    elements[-1][2].append((words[2], _ply_type(words[1], path)))
+            else:
+                raise ValueError(f"unexpected header line {line!r}")
+        except (IndexError, ValueError) as e:
+            raise DataError(f"{path}: malformed PLY header ({e}); re-export the file") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise DataError(f"{path}: unsupported PLY format {fmt!r}; use ascii or binary_little_endian")
+    return fmt, elements
+
+
+def _ply_ascii_body(body: bytes, elements, wanted: set, path: str) -> dict:
+    """The `wanted` elements of an ASCII PLY body: {name: {property: array}}."""
+    lines = body.decode("ascii", errors="replace").splitlines()
+    lines = [ln for ln in lines if ln.strip()]
+    out = {}
+    pos = 0
+    for name, count, props in elements:
+        chunk = lines[pos:pos + count]
+        pos += count
+        if name not in wanted:
+            continue
+        if len(chunk) < count:
+            raise DataError(f"{path}: PLY declares {count} '{name}' rows, file has {len(chunk)}; truncated")
+        out[name] = _ascii_rows(chunk, props, path, name)
+    return out
+
+
+def _ply_binary_body(body: bytes, elements, wanted: set, endian: str, path: str) -> dict:
+    """The `wanted` elements of a binary PLY body (endian "<" or ">"): {name: {property: array}}."""
+    out = {}
+    offset = 0
+    for name, count, props in elements:
+        has_list = any(isinstance(t, tuple) for _, t in props)
+        if not has_list:
+            dt = np.dtype([(p, endian + t) for p, t in props])
+            nbytes = dt.itemsize * count
+            if offset + nbytes > len(body):
+                raise DataError(f"{path}: PLY declares {count} '{name}' rows ({nbytes} bytes) but the file "
+                                f"has only {len(body) - offset} bytes left; the file is truncated")
+            if name in wanted:
+                arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+                out[name] = {p: arr[p] for p, _ in props}
+            offset += nbytes
+            continue
+        if count == 0:
+            out[name] = {p: np.zeros((0, 3)) for p, _ in props}
+            continue
+        # A list element: only the common case (one list property, same length each row) is vectorised.
+        if len(props) != 1:
+            if name in wanted:
+                raise DataError(f"{path}: PLY element '{name}' mixes list and scalar properties; "
+                                "re-export with only vertex_indices")
+            break  # nothing after an unsupported element is needed
+        pname, (_, ct, it) = props[0]
+        first = int(np.frombuffer(body, dtype=endian + ct, count=1, offset=offset)[0])
+        dt = np.dtype([("n", endian + ct), ("v", endian + it, (first,))])
+        nbytes = dt.itemsize * count
+        if offset + nbytes > len(body):
+            raise DataError(f"{path}: PLY '{name}' rows are truncated or have mixed lengths; "
+                            "only meshes with one polygon size (e.g. triangles) are supported")
+        arr = np.frombuffer(body, dtype=dt, count=count, offset=offset)
+        if np.any(arr["n"] != first):
+            raise DataError(f"{path}: PLY '{name}' rows have mixed lengths; triangulate the mesh first")
+        if name in wanted:
+            out[name] = {pname: arr["v"]}
+        offset += nbytes
     return out
 
 
@@ -330,7 +349,7 @@ def write_points_ply(path, points, normals=None, classes=None) -> None:
         data = rec
         header.append("property uchar class")
     header.append("end_header")
-    _makedirs_for(path)
+    makedirs_for(path)
     with open(os.fspath(path), "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(data.tobytes())
@@ -352,7 +371,7 @@ def write_mesh_ply(path, vertices, faces) -> None:
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {vertices.shape[0]}",
               "property float x", "property float y", "property float z",
               f"element face {faces.shape[0]}", "property list uchar int vertex_indices", "end_header"]
-    _makedirs_for(path)
+    makedirs_for(path)
     with open(os.fspath(path), "wb") as f:
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(vertices.tobytes())
