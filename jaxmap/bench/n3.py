@@ -28,39 +28,11 @@ import time
 
 import numpy as np
 
-VARIANTS = {
-    "jaxmap": [],
-    # the free-space label and pair store before issue 14 (flat +tr free labels, newest-64 ring)
-    "flat_ring": ["sampling.free_label_mode=truncation", "window.block_policy=ring", "window.pairs_per_frame=0"],
-    # free space before issue 21: samples only in the last metre before the band, nothing carved
-    "band_only": ["sampling.free_ray_n=0", "window.carve=false"],
-    "no_carve": ["window.carve=false"],                  # samples along the ray, but nothing carved
-    "ray_only": ["sampling.free_sample_n=0"],           # the paper's rule: every free sample on the whole ray
-    "sigma_0.1": ["sampling.sigma_m=0.1"],              # the paper's tr / 3
-    "outliers": ["preprocess.outlier_mad=6"],           # range-scaled statistical outlier removal
-    # the scan preprocessed inside the frame program (k nearest in the grid's cubes; whole-cube PCA)
-    "device": ["preprocess.device=true", "preprocess.normals=cube_knn"],
-    "device_grid": ["preprocess.device=true", "preprocess.normals=grid"],
-    "projective": ["sampling.label_mode=projective"],
-    "corrected": ["sampling.label_mode=corrected"],
-    "replay": ["window.mode=replay"],
-    "keyframe": ["window.mode=keyframe"],
-    "no_hier": ["train.hierarchical=false"],
-}
-# what a plain `jaxmap bench n3` runs (the others are run by name, with --only, mostly on the suite)
+from jaxmap.config.ablations import VARIANTS
+from jaxmap.n3.mapper import store_flat_after_full
+
 DEFAULT_VARIANTS = ("jaxmap", "flat_ring", "projective", "corrected", "replay", "keyframe", "no_hier")
 COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
-
-
-def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bool, float]:
-    """Did the store stop growing? Compares the max of the last `tail` fraction of frames with the
-    max of the frames before it: growth ratio <= 1.25 counts as flat (the window is full)."""
-    n = len(store_pairs)
-    if n < 4:
-        return True, 1.0
-    cut = int(n * (1 - tail))
-    ratio = max(store_pairs[cut:]) / max(max(store_pairs[:cut]), 1)
-    return ratio <= 1.25, float(ratio)
 
 
 def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str], evaluate: bool = True) -> dict:

@@ -161,3 +161,14 @@ class N3Mapper:
 
         cfg, state, timings = load_state(path)
         return cls(cfg, state, timings)
+
+
+def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bool, float]:
+    """Did the store stop growing? Compares the max of the last `tail` fraction of frames with the
+    max of the frames before it: growth ratio <= 1.25 counts as flat (the window is full)."""
+    n = len(store_pairs)
+    if n < 4:
+        return True, 1.0
+    cut = int(n * (1 - tail))
+    ratio = max(store_pairs[cut:]) / max(max(store_pairs[:cut]), 1)
+    return ratio <= 1.25, float(ratio)
