@@ -7,8 +7,10 @@ SDF mean and standard deviation (voxel units) that are exactly invariant to a co
 
 The latent map (README: Architecture): `pool_cells` + `encode_keyframes` / `encode_frame` (a frame's
 local map on the world grid), `fuse` / `remove` (eq. 11 on sums), `transform` (eqs. 3-10, onto the
-global grid), `remap` (re-encode the keyframes whose pose changed), `mesh` / `query` (decoded SDF,
-marching cubes); `ImtMapper` runs them over a sequence (`jaxmap imt`).
+global grid), `mesh` / `query` (decoded SDF, marching cubes). The map of a sequence is pure functions
+over one state (`jaxmap.imt.core`: `init`, `integrate` = one compiled `step` per frame, `remap`
+= re-encode the keyframes whose pose changed, an immutable `KeyframeStore`); `ImtMapper` is their
+facade over a sequence (`jaxmap imt`).
 """
 from jaxmap.imt.decoder import Decoder, DecoderConfig
 from jaxmap.imt.encoder import Encoder, EncoderConfig, encode, encode_with_jacobian
@@ -16,7 +18,8 @@ from jaxmap.imt.prior import Prior, PriorConfig, init_prior, load_prior, save_pr
 from jaxmap.imt.latent_map import (LatentMap, VoxelBatch, encode_cells, encode_frame, encode_keyframes, encode_world,
                                    fuse, pool_cells, remove)
 from jaxmap.imt.meshing import mesh, query
-from jaxmap.imt.remap import KeyframeStore, RemapOptions, remap
+from jaxmap.imt.remap import KeyframeStore, RemapOptions
+from jaxmap.imt.core import CellBatch, ImtState, ImtStatic, StepStats, init, integrate, remap, step
 from jaxmap.imt.transform import transform, transform_batch
 from jaxmap.imt.vn import (
     Jac,
@@ -33,6 +36,7 @@ from jaxmap.imt.vn import (
 )
 
 __all__ = [
+    "CellBatch", "ImtState", "ImtStatic", "StepStats", "init", "integrate", "step",
     "KeyframeStore", "LatentMap", "RemapOptions", "VoxelBatch", "encode_cells", "encode_frame", "encode_keyframes",
     "encode_world", "fuse", "mesh", "pool_cells",
     "query", "remap", "remove", "transform", "transform_batch",

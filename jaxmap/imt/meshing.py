@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.grid import hashing
-from jaxmap.imt.latent_map import CORNERS, LatentMap, _keys4
+from jaxmap.imt.latent_map import CORNERS, LatentMap, voxel_keys
 
 
 def _tent(q):
@@ -38,7 +38,7 @@ def _query_core(prior, m: LatentMap, points_w, min_weight):
     vs = m.voxel_size
     u = points_w / vs - 0.5                                                 # [P, 3]
     vox = jnp.floor(u).astype(jnp.int32)[:, None] + jnp.asarray(CORNERS)[None]   # [P, 8, 3]
-    rows = hashing.lookup(m.table, _keys4(vox.reshape(-1, 3))).reshape(vox.shape[:2])
+    rows = hashing.lookup(m.table, voxel_keys(vox.reshape(-1, 3))).reshape(vox.shape[:2])
     ok = (rows >= 0) & (m.weight[jnp.maximum(rows, 0)] > jnp.maximum(min_weight, 0.0))  # weight floor
     q = u[:, None] - vox.astype(jnp.float32)                               # [P, 8, 3] voxel units
     w = jnp.where(ok, _tent(q), 0.0)                                         # [P, 8]

@@ -42,7 +42,7 @@ from flax import traverse_util
 from jaxmap.config import load_config, save_config, to_dict
 from jaxmap.errors import JaxmapError
 from jaxmap.imt.decoder import Decoder, DecoderConfig
-from jaxmap.imt.encoder import Encoder, EncoderConfig
+from jaxmap.imt.encoder import Encoder, EncoderConfig, per_point_fast
 from jaxmap.imt.encoder import encode as _encode
 from jaxmap.imt.encoder import encode_with_jacobian as _encode_with_jacobian
 
@@ -141,6 +141,11 @@ class Prior:
     def encode_with_jacobian(self, points, normals, mask=None):
         """-> `(F [..., 18, 3], J [..., 18, 3, 3], count [...])`; `J = dF/dt` for points + t (exact)."""
         return _encode_with_jacobian(self.encoder, {"params": self.params["encoder"]}, points, normals, mask)
+
+    def per_point(self, points, normals):
+        """Per-point features before pooling: points, normals `[P, 3]` (voxel-centred, voxel units) ->
+        `[P, 18, 3]` (the map's encode: a voxel's latent is their count-weighted mean)."""
+        return per_point_fast(self.cfg.encoder, self.params["encoder"], points, normals)
 
     def decode(self, latent, queries):
         """`(F [..., 18, 3], q [..., 3]) -> (sdf mean [...], std [...])`, voxel units, leading dims
