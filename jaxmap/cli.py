@@ -254,9 +254,9 @@ def _dispatch(args) -> int:
 
         return getattr(n3run, f"cli_{args.command}")(args)
     if args.command == "prior":
-        from jaxmap.imt import prior
+        from jaxmap.imt import training
 
-        return prior.cli_train(args) if args.action == "train" else prior.cli_eval(args)
+        return training.cli_train(args) if args.action == "train" else training.cli_eval(args)
     if args.command == "slam":
         from jaxmap.slam import run as slam_run
 

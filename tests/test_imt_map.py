@@ -140,13 +140,15 @@ def test_remove_of_everything_frees_every_voxel_and_unknown_voxels_raise():
 
 
 def test_rotate_on_a_latent_map_equals_rotating_its_fields_and_raises_on_unmarked_trees():
-    from jaxmap.imt.vn import rotate, rotate_jacobians, rotate_vectors
+    from jaxmap.geometry import rotate_vectors
+    from jaxmap.imt.vn import rotate, rotate_jacobians
 
     rng = np.random.default_rng(14)
     m = lm.fuse(lm.empty(0.1, with_jacobian=True), random_batch(rng, 200, jac=True))
     R = random_rotation(rng)
     out = rotate(m, R)
-    np.testing.assert_allclose(out.latent_sum, rotate_vectors(m.latent_sum, R), atol=1e-6)
+    R32 = jnp.asarray(R, jnp.float32)
+    np.testing.assert_allclose(out.latent_sum, rotate_vectors(R32, m.latent_sum, xnp=jnp), atol=1e-6)
     np.testing.assert_allclose(out.jac_sum, rotate_jacobians(m.jac_sum, R), atol=1e-5)
     for name in ("coords", "weight"):                          # points and scalars are not rotated
         np.testing.assert_array_equal(getattr(out, name), getattr(m, name))
@@ -156,7 +158,7 @@ def test_rotate_on_a_latent_map_equals_rotating_its_fields_and_raises_on_unmarke
     tree = {"map": m, "batch": m.as_batch()._replace(jac=None), "n": 3}
     got = __import__("jax").jit(rotate)(tree, R)
     np.testing.assert_allclose(got["map"].latent_sum, out.latent_sum, atol=1e-6)
-    np.testing.assert_allclose(got["batch"].latent, rotate_vectors(m.latent, R), atol=1e-5)
+    np.testing.assert_allclose(got["batch"].latent, rotate_vectors(R32, m.latent, xnp=jnp), atol=1e-5)
     assert got["batch"].jac is None
     # a tree with nothing marked would be returned unchanged: that is an error
     with pytest.raises(ValueError, match="no Vec/Jac-marked leaf"):
@@ -181,15 +183,22 @@ def scene(rng, n=2000):
     return pts.astype(np.float32), nrm.astype(np.float32), ctr
 
 
-def test_channels_last_encoder_equals_the_flax_module(prior):
-    from jaxmap.imt.encoder import per_point_fast
+def test_the_channels_last_encoder_equals_the_channels_middle_reference(prior):
+    """`Encoder.per_point` runs its branches channels-last; the same modules and parameters in the
+    `[..., C, 3]` layout of the VN papers (kept here as the reference) give the same features."""
+    from jaxmap.imt.encoder import VNBranch
 
     rng = np.random.default_rng(11)
     p = jnp.asarray(rng.uniform(-1, 1, (500, 3)), jnp.float32)
     n = jnp.asarray(rng.normal(size=(500, 3)), jnp.float32)
-    enc = prior.encoder
-    ref = enc.apply({"params": prior.params["encoder"]}, p, n, method=type(enc).per_point)
-    got = per_point_fast(prior.cfg.encoder, prior.params["encoder"], p, n)
+    c, params = prior.cfg.encoder, prior.params["encoder"]
+    joint = c.inputs == "joint"
+    xp = jnp.stack([p, n], -2) if joint else p[:, None]
+    xn = jnp.stack([n, p], -2) if joint else n[:, None]
+    branch = VNBranch(c.hidden, c.latent, c.negative_slope)
+    ref = jnp.concatenate([branch.apply({"params": params["branch_p"]}, xp),
+                           branch.apply({"params": params["branch_n"]}, xn)], axis=-2)
+    got = prior.per_point(p, n)
     np.testing.assert_allclose(np.asarray(got), np.asarray(ref), atol=5e-5, rtol=1e-4)
 
 

@@ -18,15 +18,8 @@ from jaxmap.config import ConfigError, load_config
 from jaxmap.errors import JaxmapError
 from jaxmap.geometry import random_rotation
 from jaxmap.imt import Jac, Vec, load_prior, rotate
-from jaxmap.imt.prior import (
-    PriorConfig,
-    cli_eval,
-    cli_train,
-    evaluate_patches,
-    init_prior,
-    save_prior,
-    shipped_weights_path,
-)
+from jaxmap.imt.prior import PriorConfig, init_prior, save_prior, shipped_weights_path
+from jaxmap.imt.training import cli_eval, cli_train, evaluate_patches
 from jaxmap.synth import shapes
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -30,7 +30,6 @@ from jaxmap.imt.vn import (
     invariant_features,
     rotate,
     rotate_jacobians,
-    rotate_vectors,
     vn_inner,
     vn_mean_pool,
 )
@@ -42,5 +41,5 @@ __all__ = [
     "query", "remap", "remove", "transform", "transform_batch",
     "Decoder", "DecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",
     "VNLinear", "Vec", "encode", "encode_with_jacobian", "gram_upper", "init_prior", "invariant_features",
-    "load_prior", "rotate", "rotate_jacobians", "rotate_vectors", "save_prior", "vn_inner", "vn_mean_pool",
+    "load_prior", "rotate", "rotate_jacobians", "save_prior", "vn_inner", "vn_mean_pool",
 ]

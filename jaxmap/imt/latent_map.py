@@ -39,9 +39,9 @@ quadrature of the mean over the points) and its weight the exact number of point
 voxel this is 8 x ~2k (cell, voxel) pairs for a room frame instead of 8 x 31k, and the decoded SDF
 moves by 0.6 mm (`jaxmap bench imt`); `cells_per_voxel = 0` feeds every point.
 
-Capacity: `fuse` inserts with `hashing.insert_grow`, which grows the table (outside jit) and logs it;
-the encoders retry with a bigger table when their jitted insert reports overflow. Nothing is ever
-dropped silently. `remove` of a voxel that the map does not hold raises.
+Capacity: `fuse` grows the table with `hashing.insert_grow` (outside jit, logged); the encoders retry with
+a bigger scratch table on overflow (`hints`, owned by the caller, remember the size that sufficed).
+Nothing is dropped silently; `remove` of a voxel that the map does not hold raises.
 """
 from __future__ import annotations
 
@@ -57,6 +57,7 @@ import numpy as np
 from jaxmap.errors import DataError
 from jaxmap.geometry import transform_points
 from jaxmap.grid import hashing
+from jaxmap.imt.encoder import translation_jacobian
 from jaxmap.imt.vn import jacobian_field, vector_field
 
 FREE_WEIGHT = 1e-3      # a touched voxel whose weight falls below this is freed (~ a thousandth of a point)
@@ -159,11 +160,9 @@ def concat_batches(batches) -> VoxelBatch:
     """Concatenate `VoxelBatch`es (host or device arrays) along the entry axis (on the host: eager
     device concatenations would compile once per shape). Jacobians are kept only if every batch has them."""
     batches = list(batches)
-    jac = None
-    if all(b.jac is not None for b in batches):
-        jac = np.concatenate([np.asarray(b.jac) for b in batches])
-    cat = [np.concatenate([np.asarray(getattr(b, f)) for b in batches])
-           for f in ("coords", "latent", "weight", "valid")]
+    jac = np.concatenate([np.asarray(b.jac) for b in batches]) if all(b.jac is not None for b in batches) else None
+    cat = [np.concatenate([np.asarray(getattr(b, f)) for b in batches]) for f in ("coords", "latent", "weight",
+                                                                                    "valid")]
     return VoxelBatch(cat[0], cat[1], jac, cat[2], cat[3])
 
 
@@ -190,14 +189,12 @@ def empty(voxel_size: float, capacity: int = 1024, channels: int = 18, with_jaco
     )
 
 
-@jax.jit
-def _pad_rows_core(m: LatentMap, table: hashing.HashTable) -> LatentMap:
-    extra = table.capacity // 2 - m.rows
-
+@functools.partial(jax.jit, static_argnums=1)
+def _pad_rows_core(m: LatentMap, extra: int) -> LatentMap:
     def pad(x, fill):
         return None if x is None else jnp.concatenate([x, jnp.full((extra,) + x.shape[1:], fill, x.dtype)])
 
-    return LatentMap(table, pad(m.coords, hashing.EMPTY), pad(m.latent_sum, 0), pad(m.weight, 0), pad(m.jac_sum, 0),
+    return LatentMap(m.table, pad(m.coords, hashing.EMPTY), pad(m.latent_sum, 0), pad(m.weight, 0), pad(m.jac_sum, 0),
                      m.voxel_size)
 
 
@@ -206,9 +203,7 @@ def pad_rows(m: LatentMap, table: hashing.HashTable) -> LatentMap:
     extra = table.capacity // 2 - m.rows
     if extra < 0:
         raise ValueError("a table never shrinks")
-    if extra == 0:
-        return dataclasses.replace(m, table=table)
-    return _pad_rows_core(m, table)
+    return dataclasses.replace(_pad_rows_core(m, extra) if extra else m, table=table)
 
 
 def scatter(m: LatentMap, rows: jax.Array, b: VoxelBatch, sign: float) -> LatentMap:
@@ -359,8 +354,7 @@ def encode_pairs(prior, cells, normals, counts, level, min_points, voxel_size: f
                                                    + jnp.asarray(CORNERS, jnp.float32)[None])).reshape(-1, 3)
         nr = jnp.repeat(nrm, 8, axis=0)
         if with_jacobian:  # exact, forward mode: one t shared by the chunk's pairs gives each pair's own dF/dp
-            f, jvp = jax.linearize(lambda t: prior.per_point(rel + t, nr), jnp.zeros(3, jnp.float32))
-            j = jax.vmap(jvp, in_axes=0, out_axes=-1)(jnp.eye(3, dtype=jnp.float32))  # [8n, C, 3, 3]
+            f, j = translation_jacobian(lambda t: prior.per_point(rel + t, nr))                # [8n, C, 3, 3]
             fj = jnp.concatenate([f[..., None], j], -1) * w[:, None, None, None]       # [8n, C, 3, 4]
         else:
             fj = (prior.per_point(rel, nr) * w[:, None, None])[..., None]  # [8n, C, 3, 1]
@@ -492,8 +486,7 @@ def encode_keyframes(prior, cells_w, normals_w, counts, slot, slots: int, voxel_
         prior, pad(cells_w, n_pad, np.float32), pad(normals_w, n_pad, np.float32), pad(counts, n_pad, np.float32),
         slot_p, voxel_size, min_points, False, hints=hints)
     sg = np.ones(s_pad, np.float32)
-    if signs is not None:
-        sg[:len(signs)] = signs
+    sg[:slots] = 1.0 if signs is None else signs
     return _signed_batch(coords, lat_sum, w, levels, jnp.asarray(sg))
 
 

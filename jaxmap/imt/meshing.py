@@ -27,6 +27,7 @@ import numpy as np
 
 from jaxmap.grid import hashing
 from jaxmap.imt.latent_map import CORNERS, LatentMap, voxel_keys
+from jaxmap.mesh import extract_mesh
 
 
 def _tent(q):
@@ -132,8 +133,6 @@ def mesh(prior, m: LatentMap, resolution: int = 4, sigma_threshold_m: float = 0.
     decoded std (metres) exceeds this (<= 0: keep all); min_weight: voxels with weight <= this are not
     decoded.
     """
-    from jaxmap.mesh import extract_mesh
-
     codes, mean, std, vox = lattice_values(prior, m, resolution, min_weight)
     h = m.voxel_size / resolution
     ok = np.isfinite(mean)
