@@ -196,10 +196,32 @@ def slam(args) -> int:
 
 
 def prior(args) -> int:
-    """`jaxmap prior {train,eval}`: train or evaluate the equivariant encoder/decoder prior."""
-    from jaxmap.imt import prior as prior_mod
+    """`jaxmap prior {train,eval} [config] [--out RUN] [--set k=v ...]`: train the equivariant encoder/decoder
+    prior (its summary as one JSON line), or print the validation figures of the shipped weights (or of
+    `RUN/prior.npz` with `--out RUN`)."""
+    import dataclasses
 
-    return prior_mod.cli_train(args) if args.action == "train" else prior_mod.cli_eval(args)
+    from jaxmap.config import PriorConfig
+    from jaxmap.imt.prior import DEFAULT_CONFIG, WEIGHTS_FILE, load_prior, shipped_weights_path
+    from jaxmap.imt.training import make_val_set, summary_of, train
+
+    # the CLI default and absent (an installed package run outside the repository): the built-in defaults,
+    # which equal configs/prior.yaml
+    path = args.config or DEFAULT_CONFIG
+    if path == DEFAULT_CONFIG and not os.path.isfile(path):
+        path = None
+    overrides = list(args.overrides) + ([f"output={args.out}"] if args.out and args.action == "train" else [])
+    cfg = load_config(path, overrides, schema=PriorConfig)
+    if args.action == "train":
+        print(json.dumps(train(cfg, cfg.output)))
+        return 0
+    weights = os.path.join(args.out, WEIGHTS_FILE) if args.out else None
+    model, meta = load_prior(weights, with_meta=True)
+    cfg = dataclasses.replace(cfg, model=model.cfg)
+    out = {"weights": weights or shipped_weights_path(), **summary_of(model, cfg, make_val_set(cfg), {}),
+           "trained": {k: meta[k] for k in ("steps", "train_time_s", "total_time_s") if k in meta}}
+    print(json.dumps(out))
+    return 0
 
 
 def info(args) -> int:

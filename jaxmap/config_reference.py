@@ -42,7 +42,7 @@ import typing
 from typing import Any, Iterator, NamedTuple
 
 from jaxmap.config import ImtConfig, MapConfig
-from jaxmap.imt.prior import PriorConfig
+from jaxmap.config import PriorConfig
 from jaxmap.config import SlamConfig
 
 BEGIN = "<!-- config-reference:begin -->"

@@ -71,7 +71,7 @@ def _schema(name):
 
         return SlamConfig
     if name == "prior":
-        from jaxmap.imt.prior import PriorConfig
+        from jaxmap.config import PriorConfig
 
         return PriorConfig
     from jaxmap.config import MapConfig

@@ -10,7 +10,7 @@ import pytest
 
 from jaxmap import config_reference as cr
 from jaxmap.config import ImtConfig, MapConfig, TrainConfig
-from jaxmap.imt.prior import PriorConfig
+from jaxmap.config import PriorConfig
 from jaxmap.config import SlamConfig
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -18,15 +18,10 @@ from jaxmap.config import ConfigError, load_config
 from jaxmap.errors import JaxmapError
 from jaxmap.geometry import random_rotation
 from jaxmap.imt import Jac, Vec, load_prior, rotate
-from jaxmap.imt.prior import (
-    PriorConfig,
-    cli_eval,
-    cli_train,
-    evaluate_patches,
-    init_prior,
-    save_prior,
-    shipped_weights_path,
-)
+from jaxmap.config import PriorConfig
+from jaxmap.imt.prior import init_prior, save_prior, shipped_weights_path
+from jaxmap.commands import prior as prior_command
+from jaxmap.imt.training import evaluate_patches
 from jaxmap.synth import shapes
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -186,7 +181,7 @@ def test_cli_train_resume_and_eval(tmp_path, capsys):
              "train.batch_size=4", "train.val_every=2", "train.ckpt_every=2", "train.progress=false"]
     args = types.SimpleNamespace(action="train", config=CONFIG, out=out, data=None,
                                  overrides=small + ["train.steps=2"])
-    assert cli_train(args) == 0
+    assert prior_command(args) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for f in ("prior.npz", "metrics.json", "history.json", "loss.png", "config.yaml"):
         assert os.path.isfile(os.path.join(out, f)), f
@@ -194,13 +189,13 @@ def test_cli_train_resume_and_eval(tmp_path, capsys):
     assert summary["steps"] == 2 and np.isfinite(summary["val_nll"])
     # resume continues from the checkpoint at step 2
     args.overrides = small + ["train.steps=4", "train.resume=true"]
-    assert cli_train(args) == 0
+    assert prior_command(args) == 0
     hist = json.load(open(os.path.join(out, "history.json")))
     assert [h["step"] for h in hist if "val_nll" in h] == [2, 4]
     capsys.readouterr()
     ev = types.SimpleNamespace(action="eval", config=CONFIG, out=out, data=None,
                                overrides=["data.n_val=16", "data.n_queries=32", "data.n_points=32"])
-    assert cli_eval(ev) == 0
+    assert prior_command(ev) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["weights"].endswith("prior.npz") and np.isfinite(res["val_nll"])
     assert set(res["patch_mae_near"]) == {f"{n}_{w}" for n in shapes.HELDOUT_PATCHES for w in ("inner", "cube")}

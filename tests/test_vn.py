@@ -15,8 +15,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from jaxmap.geometry import random_rotation
-from jaxmap.imt.decoder import Decoder, DecoderConfig
-from jaxmap.imt.encoder import Encoder, EncoderConfig, encode_with_jacobian
+from jaxmap.config.prior import EncoderConfig, LatentDecoderConfig
+from jaxmap.imt.decoder import Decoder
+from jaxmap.imt.encoder import Encoder, encode_with_jacobian
 from jaxmap.imt.vn import (
     Jac,
     Vec,
@@ -63,7 +64,7 @@ def _apply(module, x, seed):
 _ENCODERS = {inputs: Encoder(EncoderConfig(inputs=inputs)) for inputs in ("joint", "split")}
 _encode_jit = {k: jax.jit(e.apply) for k, e in _ENCODERS.items()}
 _encode_jac_jit = {k: jax.jit(lambda p, *a, _e=e: encode_with_jacobian(_e, p, *a)) for k, e in _ENCODERS.items()}
-_DECODER = Decoder(DecoderConfig(hidden=64, layers=3))
+_DECODER = Decoder(LatentDecoderConfig(hidden=64, layers=3))
 _decode_jit = jax.jit(_DECODER.apply)
 
 

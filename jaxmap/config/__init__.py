@@ -8,6 +8,8 @@ from jaxmap.config.rules import (CHECKS, DATA_KINDS, RULES, Rule, above, at_leas
 from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
+from jaxmap.config.prior import (EncoderConfig, LatentDecoderConfig, PriorConfig, PriorDataConfig, PriorModelConfig,
+                                  PriorTrainConfig)
 from jaxmap.config.slam import FrontEndConfig, LoopConfig, OdometryConfig, SlamConfig
 from jaxmap.errors import ConfigError
 
@@ -16,4 +18,5 @@ __all__ = ["apply_overrides", "config_from_args", "from_dict", "load_config", "s
            "lattice_problem", "one_of", "strictly_within", "validate", "within", "DataConfig",
            "DecoderConfig", "EvalConfig", "GridConfig", "ImtConfig", "LatentMapConfig", "LatentMeshConfig",
            "MapConfig", "MeshConfig", "PreprocessConfig", "SamplingConfig", "TrainConfig", "WindowConfig",
-           "FrontEndConfig", "LoopConfig", "OdometryConfig", "SlamConfig", "ConfigError"]
+           "FrontEndConfig", "LoopConfig", "OdometryConfig", "SlamConfig", "EncoderConfig", "LatentDecoderConfig", "PriorConfig", "PriorDataConfig",
+           "PriorModelConfig", "PriorTrainConfig", "ConfigError"]

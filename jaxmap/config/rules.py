@@ -13,6 +13,7 @@ from typing import Any, Callable
 from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
+from jaxmap.config.prior import EncoderConfig
 from jaxmap.config.slam import EDGE_INFORMATION, ODOMETRY_METHODS, FrontEndConfig, OdometryConfig, SlamConfig
 from jaxmap.errors import ConfigError
 
@@ -161,6 +162,7 @@ RULES: dict[type, dict[str, Rule]] = {
     ImtConfig: {"output": NONEMPTY},
     OdometryConfig: {"method": one_of(*ODOMETRY_METHODS), "max_iter": at_least(1), "normals_k": at_least(3)},
     FrontEndConfig: {"edge_information": one_of(*EDGE_INFORMATION)},
+    EncoderConfig: {"inputs": one_of("joint", "split")},
 }
 
 CHECKS: dict[type, list[Callable[[Any, str], Any]]] = {

@@ -7,16 +7,20 @@ SDF mean and standard deviation (voxel units) that are exactly invariant to a co
 
 The latent map (README: Architecture): `pool_cells` + `encode_keyframes` / `encode_frame` (a frame's
 local map on the world grid), `fuse` / `remove` (eq. 11 on sums), `transform` (eqs. 3-10, onto the
-global grid), `remap` (re-encode the keyframes whose pose changed), `mesh` / `query` (decoded SDF,
-marching cubes); `ImtMapper` runs them over a sequence (`jaxmap imt`).
+global grid), `mesh` / `query` (decoded SDF, marching cubes). The map of a sequence is pure functions
+over one state (`jaxmap.imt.core`: `init`, `integrate` = one compiled `step` per frame, `remap`
+= re-encode the keyframes whose pose changed, an immutable `KeyframeStore`); `ImtMapper` is their
+facade over a sequence (`jaxmap imt`).
 """
-from jaxmap.imt.decoder import Decoder, DecoderConfig
-from jaxmap.imt.encoder import Encoder, EncoderConfig, encode, encode_with_jacobian
-from jaxmap.imt.prior import Prior, PriorConfig, init_prior, load_prior, save_prior
+from jaxmap.config.prior import EncoderConfig, LatentDecoderConfig, PriorConfig
+from jaxmap.imt.decoder import Decoder
+from jaxmap.imt.encoder import Encoder, encode, encode_with_jacobian
+from jaxmap.imt.prior import Prior, init_prior, load_prior, save_prior
 from jaxmap.imt.latent_map import (LatentMap, VoxelBatch, encode_cells, encode_frame, encode_keyframes, encode_world,
                                    fuse, pool_cells, remove)
 from jaxmap.imt.meshing import mesh, query
-from jaxmap.imt.remap import KeyframeStore, RemapOptions, remap
+from jaxmap.imt.remap import KeyframeStore, RemapOptions
+from jaxmap.imt.core import CellBatch, ImtState, ImtStatic, StepStats, init, integrate, remap, step
 from jaxmap.imt.transform import transform, transform_batch
 from jaxmap.imt.vn import (
     Jac,
@@ -27,16 +31,16 @@ from jaxmap.imt.vn import (
     invariant_features,
     rotate,
     rotate_jacobians,
-    rotate_vectors,
     vn_inner,
     vn_mean_pool,
 )
 
 __all__ = [
+    "CellBatch", "ImtState", "ImtStatic", "StepStats", "init", "integrate", "step",
     "KeyframeStore", "LatentMap", "RemapOptions", "VoxelBatch", "encode_cells", "encode_frame", "encode_keyframes",
     "encode_world", "fuse", "mesh", "pool_cells",
     "query", "remap", "remove", "transform", "transform_batch",
-    "Decoder", "DecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",
+    "Decoder", "LatentDecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",
     "VNLinear", "Vec", "encode", "encode_with_jacobian", "gram_upper", "init_prior", "invariant_features",
-    "load_prior", "rotate", "rotate_jacobians", "rotate_vectors", "save_prior", "vn_inner", "vn_mean_pool",
+    "load_prior", "rotate", "rotate_jacobians", "save_prior", "vn_inner", "vn_mean_pool",
 ]

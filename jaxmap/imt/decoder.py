@@ -15,25 +15,18 @@ computed once for all of its queries when F is broadcast (e.g. `F [V, 1, C, 3]`,
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import flax.linen as nn
 import jax
 
+from jaxmap.config.prior import LatentDecoderConfig
 from jaxmap.imt.vn import invariant_features
-
-
-@dataclass(frozen=True)
-class DecoderConfig:
-    hidden: int = 128       # width of the MLP
-    layers: int = 3         # hidden layers (the first is the split invariant layer)
-    min_std: float = 1e-3   # floor of the predicted standard deviation (voxel units)
 
 
 class Decoder(nn.Module):
     """`(F [..., C, 3], q [..., 3]) -> (mean [...], std [...])`, leading dims broadcast."""
 
-    cfg: DecoderConfig = DecoderConfig()
+    cfg: LatentDecoderConfig = LatentDecoderConfig()
 
     @nn.compact
     def __call__(self, f: jax.Array, q: jax.Array) -> tuple[jax.Array, jax.Array]:

@@ -39,9 +39,9 @@ quadrature of the mean over the points) and its weight the exact number of point
 voxel this is 8 x ~2k (cell, voxel) pairs for a room frame instead of 8 x 31k, and the decoded SDF
 moves by 0.6 mm (`jaxmap bench imt`); `cells_per_voxel = 0` feeds every point.
 
-Capacity: `fuse` inserts with `hashing.insert_grow`, which grows the table (outside jit) and logs it;
-the encoders retry with a bigger table when their jitted insert reports overflow. Nothing is ever
-dropped silently. `remove` of a voxel that the map does not hold raises.
+Capacity: `fuse` grows the table with `hashing.insert_grow` (outside jit, logged); the encoders retry with
+a bigger scratch table on overflow (`hints`, owned by the caller, remember the size that sufficed).
+Nothing is dropped silently; `remove` of a voxel that the map does not hold raises.
 """
 from __future__ import annotations
 
@@ -55,18 +55,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.errors import DataError
-from jaxmap.geometry import transform_points
+from jaxmap.geometry import SE3
 from jaxmap.grid import hashing
-from jaxmap.imt.encoder import per_point_fast
+from jaxmap.grid.features import CORNER_OFFSETS  # the 8 voxels whose centres surround a point
+from jaxmap.imt.encoder import translation_jacobian
 from jaxmap.imt.vn import jacobian_field, vector_field
+from jaxmap.sizes import quarter_bucket
 
 FREE_WEIGHT = 1e-3      # a touched voxel whose weight falls below this is freed (~ a thousandth of a point)
 MAX_LOAD = 0.5          # rows per table slot
 _CELL_BUCKET = 2048     # smallest padded cell count of an encode (see bucket)
 _CHUNK = 512            # cells per step of the encoder's scan (4096 pairs: the intermediates stay in cache)
-
-# The 8 corner offsets of a cell: a point feeds the 8 voxels whose centres surround it.
-CORNERS = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.int32)
 
 
 def _inv_weight(w):
@@ -146,29 +145,21 @@ class VoxelBatch:
 
 
 def bucket(n: int, smallest: int = _CELL_BUCKET) -> int:
-    """Padded size: 2^k times 1, 1.25, 1.5 or 1.75 (>= smallest, a power of two >= 8), so that inputs of
-    any size share a handful of compiled shapes and padding wastes at most 25 % of the work."""
-    n = max(int(n), smallest)
-    k = 1 << (n.bit_length() - 1)
-    for f in (4, 5, 6, 7, 8):
-        if n <= k * f // 4:
-            return k * f // 4
-    raise AssertionError(n)
+    """Padded cell count of an encode (`jaxmap.sizes.quarter_bucket`, at least `smallest`)."""
+    return quarter_bucket(n, smallest)
 
 
 def concat_batches(batches) -> VoxelBatch:
     """Concatenate `VoxelBatch`es (host or device arrays) along the entry axis (on the host: eager
     device concatenations would compile once per shape). Jacobians are kept only if every batch has them."""
     batches = list(batches)
-    jac = None
-    if all(b.jac is not None for b in batches):
-        jac = np.concatenate([np.asarray(b.jac) for b in batches])
-    cat = [np.concatenate([np.asarray(getattr(b, f)) for b in batches])
-           for f in ("coords", "latent", "weight", "valid")]
+    jac = np.concatenate([np.asarray(b.jac) for b in batches]) if all(b.jac is not None for b in batches) else None
+    cat = [np.concatenate([np.asarray(getattr(b, f)) for b in batches]) for f in ("coords", "latent", "weight",
+                                                                                    "valid")]
     return VoxelBatch(cat[0], cat[1], jac, cat[2], cat[3])
 
 
-def _keys4(coords, level=None):
+def voxel_keys(coords, level=None):
     """[P, 3] voxel coords (+ [P] level column, 0 if None) -> [P, 4] hash keys; numpy in, numpy out."""
     xnp = np if isinstance(coords, np.ndarray) else jnp
     lev = xnp.zeros_like(coords[:, :1]) if level is None else level[:, None].astype(coords.dtype)
@@ -191,30 +182,26 @@ def empty(voxel_size: float, capacity: int = 1024, channels: int = 18, with_jaco
     )
 
 
-@jax.jit
-def _pad_rows_core(m: LatentMap, table: hashing.HashTable) -> LatentMap:
-    extra = table.capacity // 2 - m.rows
-
+@functools.partial(jax.jit, static_argnums=1)
+def _pad_rows_core(m: LatentMap, extra: int) -> LatentMap:
     def pad(x, fill):
         return None if x is None else jnp.concatenate([x, jnp.full((extra,) + x.shape[1:], fill, x.dtype)])
 
-    return LatentMap(table, pad(m.coords, hashing.EMPTY), pad(m.latent_sum, 0), pad(m.weight, 0), pad(m.jac_sum, 0),
+    return LatentMap(m.table, pad(m.coords, hashing.EMPTY), pad(m.latent_sum, 0), pad(m.weight, 0), pad(m.jac_sum, 0),
                      m.voxel_size)
 
 
-def _pad_rows(m: LatentMap, table: hashing.HashTable) -> LatentMap:
+def pad_rows(m: LatentMap, table: hashing.HashTable) -> LatentMap:
     """Attach a (possibly grown) table and pad the row arrays to its row capacity (on the device)."""
     extra = table.capacity // 2 - m.rows
     if extra < 0:
         raise ValueError("a table never shrinks")
-    if extra == 0:
-        return dataclasses.replace(m, table=table)
-    return _pad_rows_core(m, table)
+    return dataclasses.replace(_pad_rows_core(m, extra) if extra else m, table=table)
 
 
-@functools.partial(jax.jit, static_argnames=("sign",))
-def _scatter(m: LatentMap, rows: jax.Array, b: VoxelBatch, sign: float) -> LatentMap:
-    """Eq. 11 on sums for a batch whose rows are known ([P] int32, -1 = skip). Touches only those rows."""
+def scatter(m: LatentMap, rows: jax.Array, b: VoxelBatch, sign: float) -> LatentMap:
+    """Eq. 11 on sums for a batch whose rows are known ([P] int32, -1 = skip). Touches only those rows
+    (traceable; `jaxmap.imt.core.step` runs it inside the frame program)."""
     ok = b.valid & (rows >= 0) & (b.weight != 0)
     r = jnp.where(ok, rows, m.rows)  # out of range -> dropped by the scatters (only for skipped entries)
     wk = jnp.where(ok, b.weight, 0.0) * sign                                          # [P]
@@ -234,6 +221,9 @@ def _scatter(m: LatentMap, rows: jax.Array, b: VoxelBatch, sign: float) -> Laten
     return LatentMap(m.table, coords, latent_sum, weight, jac_sum, m.voxel_size)
 
 
+_scatter = jax.jit(scatter, static_argnames=("sign",))
+
+
 def _check_batch(m: LatentMap, b: VoxelBatch) -> None:
     if m.jac_sum is not None and b.jac is None:
         raise ValueError("this map keeps Jacobians: the batch must carry them too")
@@ -251,13 +241,13 @@ def fuse(m: LatentMap, b: LatentMap | VoxelBatch, log: bool = True) -> LatentMap
         b = b.as_batch()
     _check_batch(m, b)
     ok = jnp.asarray(b.valid) & (jnp.asarray(b.weight) != 0)
-    table, rows = hashing.insert_grow(m.table, _keys4(jnp.asarray(b.coords)), ok, max_load=MAX_LOAD, log=log)
-    return _scatter(_pad_rows(m, table), rows, b, 1.0)
+    table, rows = hashing.insert_grow(m.table, voxel_keys(jnp.asarray(b.coords)), ok, max_load=MAX_LOAD, log=log)
+    return _scatter(pad_rows(m, table), rows, b, 1.0)
 
 
 @jax.jit
 def _lookup_rows(table, coords, valid, weight):
-    rows = hashing.lookup(table, _keys4(coords))
+    rows = hashing.lookup(table, voxel_keys(coords))
     missing = jnp.any(valid & (weight != 0) & (rows < 0))
     return rows, missing
 
@@ -329,38 +319,38 @@ def pool_cells(points, normals, voxel_size: float, cells_per_voxel: int = 1):
     return c.astype(np.float32), n.astype(np.float32), cnt.astype(np.float32)
 
 
-@functools.partial(jax.jit, static_argnames=("voxel_size", "capacity", "with_jacobian"))
-def _encode_core(prior, cells, normals, counts, level, min_points, voxel_size: float, capacity: int,
+def encode_pairs(prior, cells, normals, counts, level, min_points, voxel_size: float, capacity: int,
                  with_jacobian: bool):
-    """cells, normals [N, 3] float32 map frame; counts [N] (0 = padding); level [N] int32 (a key column:
-    records of different levels never pool). -> (coords, latent sum, jac sum or None, count, level, table,
-    overflow); N a multiple of _CHUNK."""
+    """Per-(voxel, level) sums of the encoder's features over cells (traceable; the frame program's encode).
+
+    cells, normals [N, 3] float32 map frame; counts [N] (0 = padding); level [N] int32 (a key column:
+    records of different levels never pool); a `capacity`-slot scratch table (static) holds the records.
+    -> (coords [R, 3], latent sum [R, C, 3], jac sum [R, C, 3, 3] or None, count [R], level [R], table,
+    overflow []), R = capacity // 2; N a multiple of _CHUNK."""
     n = cells.shape[0]
     u = cells / voxel_size - 0.5                                           # [N, 3] continuous voxel index
     base = jnp.floor(u).astype(jnp.int32)
-    vox = (base[:, None, :] + jnp.asarray(CORNERS)[None]).reshape(n * 8, 3)   # [8N, 3]
+    vox = (base[:, None, :] + jnp.asarray(CORNER_OFFSETS)[None]).reshape(n * 8, 3)   # [8N, 3]
     lev = jnp.repeat(level, 8)
     wp = jnp.repeat(counts, 8)                                             # [8N] points behind each pair
     valid = wp > 0
-    table, rows, overflow = hashing.insert(hashing.create(capacity), _keys4(vox, lev), valid,
+    table, rows, overflow = hashing.insert(hashing.create(capacity), voxel_keys(vox, lev), valid,
                                            row_capacity=capacity // 2)
     r = capacity // 2
     seg = jnp.where(valid & (rows >= 0), rows, r)                          # [8N], r = dropped
     count = jax.ops.segment_sum(wp, seg, num_segments=r + 1)[:r]           # [R] exact point counts
-    cfg, params = prior.cfg.encoder, prior.params["encoder"]
     c = prior.latent_channels
 
     def step(acc, chunk):                                                  # _CHUNK cells = 8 _CHUNK pairs
         p, nrm, w, s = chunk
         rel = ((p / voxel_size - 0.5)[:, None] - (jnp.floor(p / voxel_size - 0.5)[:, None]
-                                                   + jnp.asarray(CORNERS, jnp.float32)[None])).reshape(-1, 3)
+                                                   + jnp.asarray(CORNER_OFFSETS, jnp.float32)[None])).reshape(-1, 3)
         nr = jnp.repeat(nrm, 8, axis=0)
         if with_jacobian:  # exact, forward mode: one t shared by the chunk's pairs gives each pair's own dF/dp
-            f, jvp = jax.linearize(lambda t: per_point_fast(cfg, params, rel + t, nr), jnp.zeros(3, jnp.float32))
-            j = jax.vmap(jvp, in_axes=0, out_axes=-1)(jnp.eye(3, dtype=jnp.float32))  # [8n, C, 3, 3]
+            f, j = translation_jacobian(lambda t: prior.per_point(rel + t, nr))                # [8n, C, 3, 3]
             fj = jnp.concatenate([f[..., None], j], -1) * w[:, None, None, None]       # [8n, C, 3, 4]
         else:
-            fj = (per_point_fast(cfg, params, rel, nr) * w[:, None, None])[..., None]  # [8n, C, 3, 1]
+            fj = (prior.per_point(rel, nr) * w[:, None, None])[..., None]  # [8n, C, 3, 1]
         return acc.at[s].add(fj, mode="drop"), None
 
     width = 4 if with_jacobian else 1
@@ -375,28 +365,35 @@ def _encode_core(prior, cells, normals, counts, level, min_points, voxel_size: f
     return coords, lat, jac, jnp.where(keep, count, 0.0), levels, table, overflow
 
 
-def _pad(x, n_pad: int, dtype, fill=0):
+_encode_core = jax.jit(encode_pairs, static_argnames=("voxel_size", "capacity", "with_jacobian"))
+
+
+def pad(x, n_pad: int, dtype, fill=0):
     x = np.asarray(x, dtype)
     return np.concatenate([x, np.full((n_pad - len(x),) + x.shape[1:], fill, dtype)])
 
 
-_CAPACITY_HINT: dict[int, int] = {}   # padded cell count -> the encode table size that last sufficed
+def encode_capacity(n_pad: int, hints: dict) -> int:
+    """Scratch-table slots of an encode of `n_pad` cells: a cell feeds 8 voxels and a voxel's cube holds up
+    to 8 cells, so 2 rows per cell covers surfaces; isolated cells (8 rows each, sparse LiDAR) overflow it
+    once, and `hints` (n_pad -> slots that sufficed, owned by the caller) remembers the size that worked."""
+    return max(1 << max(10, math.ceil(math.log2(4 * n_pad))), hints.get(n_pad, 0))
 
 
-def _encode_padded(prior, cells, normals, counts, level, voxel_size, min_points, with_jacobian, capacity=None):
-    """Encode cells already padded to a bucketed count (`bucket`); retry with a bigger table on overflow."""
+def _encode_padded(prior, cells, normals, counts, level, voxel_size, min_points, with_jacobian, capacity=None,
+                   hints: dict | None = None):
+    """Encode cells already padded to a bucketed count (`bucket`); retry with a bigger table on overflow.
+    hints: {padded count: table size that sufficed}, owned by the caller (an `ImtMapper` keeps one), so a
+    sequence retries (and compiles the bigger table) once, not every call."""
     n_pad = cells.shape[0]
     args = (cells, normals, counts, level)
-    if capacity is None:
-        # a cell feeds 8 voxels and a voxel's cube holds up to 8 cells: 2 rows per cell covers surfaces,
-        # isolated cells (8 rows each, sparse LiDAR) need a retry; the size that worked for this padded
-        # count is remembered, so a sequence retries (and compiles the bigger table) once, not every call
-        capacity = max(1 << max(10, math.ceil(math.log2(4 * n_pad))), _CAPACITY_HINT.get(n_pad, 0))
+    hints = {} if hints is None else hints
+    capacity = encode_capacity(n_pad, hints) if capacity is None else capacity
     while True:
         out = _encode_core(prior, *args, jnp.float32(min_points), float(voxel_size), int(capacity),
                            bool(with_jacobian))
         if not bool(out[-1]):
-            _CAPACITY_HINT[n_pad] = max(capacity, _CAPACITY_HINT.get(n_pad, 0))
+            hints[n_pad] = max(capacity, hints.get(n_pad, 0))
             return out[:-1]
         capacity *= 2
         if capacity > hashing.MAX_CAPACITY:
@@ -415,26 +412,27 @@ def _points_and_normals(points, normals) -> tuple[np.ndarray, np.ndarray]:
 
 
 def encode_cells(prior, cells, normals, counts, voxel_size: float, min_points: int = 10,
-                 with_jacobian: bool = True, capacity: int | None = None) -> LatentMap:
-    """The local map of pooled cells (`pool_cells`), map frame. See `encode_world`."""
+                 with_jacobian: bool = True, capacity: int | None = None, hints: dict | None = None) -> LatentMap:
+    """The local map of pooled cells (`pool_cells`), map frame. See `encode_world`; `hints` as `_encode_padded`."""
     cells, normals = _points_and_normals(cells, normals)
     n_pad = bucket(len(cells))
     coords, lat, jac, w, _, table = _encode_padded(
-        prior, _pad(cells, n_pad, np.float32), _pad(normals, n_pad, np.float32), _pad(counts, n_pad, np.float32),
-        np.zeros(n_pad, np.int32), voxel_size, min_points, with_jacobian, capacity)
+        prior, pad(cells, n_pad, np.float32), pad(normals, n_pad, np.float32), pad(counts, n_pad, np.float32),
+        np.zeros(n_pad, np.int32), voxel_size, min_points, with_jacobian, capacity, hints)
     return LatentMap(table, coords, lat, w, jac, float(voxel_size))
 
 
 def encode_world(prior, points_w, normals_w, voxel_size: float, min_points: int = 10,
-                 with_jacobian: bool = True, capacity: int | None = None, cells_per_voxel: int = 1) -> LatentMap:
+                 with_jacobian: bool = True, capacity: int | None = None, cells_per_voxel: int = 1,
+                 hints: dict | None = None) -> LatentMap:
     """Encode world-frame points and normals on the world grid (see `encode_frame`)."""
     points_w, normals_w = _points_and_normals(points_w, normals_w)
     c, n, k = pool_cells(points_w, normals_w, voxel_size, cells_per_voxel)
-    return encode_cells(prior, c, n, k, voxel_size, min_points, with_jacobian, capacity)
+    return encode_cells(prior, c, n, k, voxel_size, min_points, with_jacobian, capacity, hints)
 
 
 def encode_frame(prior, points, normals, pose, voxel_size: float, min_points: int = 10,
-                 with_jacobian: bool = True, cells_per_voxel: int = 1) -> LatentMap:
+                 with_jacobian: bool = True, cells_per_voxel: int = 1, hints: dict | None = None) -> LatentMap:
     """The local map of one frame, on the world-aligned grid.
 
     Args:
@@ -447,18 +445,21 @@ def encode_frame(prior, points, normals, pose, voxel_size: float, min_points: in
       min_points: voxels fed by fewer points are dropped (weight 0).
       with_jacobian: compute the translation Jacobians (needed by `transform`; exact, forward mode).
       cells_per_voxel: points are pooled into cells of voxel_size / cells_per_voxel first (0 = none).
+      hints: {padded cell count: scratch-table size that sufficed}, kept by the caller across frames.
     Returns:
       A `LatentMap` in the world frame: each cell feeds the 8 voxels whose 2x cube contains it;
       latent = count-weighted mean of the per-point encoder features, weight = number of points.
     """
-    pose = np.asarray(pose, np.float64)
-    pw = transform_points(pose, np.asarray(points, np.float64)).astype(np.float32)
-    nw = (np.asarray(normals, np.float64) @ pose[:3, :3].T).astype(np.float32)
-    return encode_world(prior, pw, nw, voxel_size, min_points, with_jacobian, cells_per_voxel=cells_per_voxel)
+    T_w_s = SE3.from_matrix(np.asarray(pose, np.float64))
+    pw = T_w_s.apply(np.asarray(points, np.float64)).astype(np.float32)
+    nw = T_w_s.rotation().apply(np.asarray(normals, np.float64)).astype(np.float32)
+    return encode_world(prior, pw, nw, voxel_size, min_points, with_jacobian, cells_per_voxel=cells_per_voxel,
+                        hints=hints)
 
 
 def encode_keyframes(prior, cells_w, normals_w, counts, slot, slots: int, voxel_size: float, min_points: int = 10,
-                     signs=None, n_pad: int | None = None, slots_pad: int | None = None) -> VoxelBatch:
+                     signs=None, n_pad: int | None = None, slots_pad: int | None = None,
+                     hints: dict | None = None) -> VoxelBatch:
     """The local maps of several keyframes, in one encode (no Jacobians).
 
     cells_w, normals_w: [N, 3] world-frame pooled cells of all keyframes; counts [N]; slot [N] int32 in
@@ -473,19 +474,20 @@ def encode_keyframes(prior, cells_w, normals_w, counts, slot, slots: int, voxel_
     n_pad = n_pad or bucket(len(cells_w))
     if n_pad < len(cells_w) or s_pad < slots:
         raise ValueError(f"encode_keyframes: {len(cells_w)} cells / {slots} slots do not fit {n_pad} / {s_pad}")
-    slot_p = _pad(slot, n_pad, np.int32)
+    slot_p = pad(slot, n_pad, np.int32)
     coords, lat_sum, _, w, levels, _ = _encode_padded(
-        prior, _pad(cells_w, n_pad, np.float32), _pad(normals_w, n_pad, np.float32), _pad(counts, n_pad, np.float32),
-        slot_p, voxel_size, min_points, False)
+        prior, pad(cells_w, n_pad, np.float32), pad(normals_w, n_pad, np.float32), pad(counts, n_pad, np.float32),
+        slot_p, voxel_size, min_points, False, hints=hints)
     sg = np.ones(s_pad, np.float32)
-    if signs is not None:
-        sg[:len(signs)] = signs
+    sg[:slots] = 1.0 if signs is None else signs
     return _signed_batch(coords, lat_sum, w, levels, jnp.asarray(sg))
 
 
-@jax.jit
-def _signed_batch(coords, lat_sum, w, levels, signs):
-    """(voxel, slot) sums -> a VoxelBatch of means whose weights carry the slot's sign."""
+def signed_batch(coords, lat_sum, w, levels, signs) -> VoxelBatch:
+    """(voxel, slot) sums -> a VoxelBatch of means whose weights carry the slot's sign (traceable)."""
     mean = lat_sum * _inv_weight(w)[:, None, None]
     w = w * signs[jnp.maximum(levels, 0)]
     return VoxelBatch(coords, mean, None, w, w != 0)
+
+
+_signed_batch = jax.jit(signed_batch)

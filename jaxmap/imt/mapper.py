@@ -5,10 +5,12 @@
     mapper.remap(new_keyframe_poses)          # [K,4,4] after a pose-graph update
     mapper.mesh(); mapper.sdf(points_w); mapper.save(dir); ImtMapper.load(dir)
 
-Every added frame is preprocessed (crop, downsample to about voxel/4, PCA normals towards the
-sensor), pooled into cells on the world grid at its pose (`pool_cells`), encoded (`encode_keyframes`,
-the same function `remap` re-encodes with), fused into the global map (sums, no Jacobians) and its
-cells kept as a keyframe (`KeyframeStore`) so that a later pose change can move it.
+A thin facade over the pure functions of `jaxmap.imt.core`: it holds the state (`mapper.state`, the
+map and its active-voxel count), the immutable keyframe store (`mapper.store`, replaced, never
+changed) and the encode capacities that sufficed so far (`mapper.hints`). Every added frame is
+preprocessed (crop, downsample to about voxel/4, PCA normals towards the sensor) and pooled into
+cells on the world grid at its pose on the host, then kept as a keyframe and encoded and fused by
+one compiled program (`core.integrate`), whose stats are read once.
 """
 from __future__ import annotations
 
@@ -16,16 +18,22 @@ import os
 import time
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
+from jaxmap.checkpoint import read_meta, read_tree, save_tree
 from jaxmap.config import ImtConfig, from_dict, to_dict
 from jaxmap.errors import DataError
 from jaxmap.frame_loop import medians
-from jaxmap.geometry import transform_points, validate_pose
+from jaxmap.geometry import SE3, validate_pose
+from jaxmap.grid.hashing import HashTable
+from jaxmap.imt import core
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.meshing import mesh as mesh_map
 from jaxmap.imt.meshing import query
-from jaxmap.imt.remap import KeyframeStore, RemapOptions, contributions, remap
+from jaxmap.imt.prior import load_prior
+from jaxmap.imt.remap import KeyframeStore, RemapOptions
+from jaxmap.preprocess import preprocess_scan
 
 
 def remap_options(cfg: ImtConfig) -> RemapOptions:
@@ -38,23 +46,29 @@ class ImtMapper:
     """Global latent map + keyframe store of one run (see the module docstring)."""
 
     def __init__(self, cfg: ImtConfig = ImtConfig(), prior=None):
-        from jaxmap.imt.prior import load_prior
-
         if cfg.map.interpolation not in ("trilinear", "softmax"):
             raise ValueError(f"map.interpolation must be 'trilinear' or 'softmax', got {cfg.map.interpolation!r}")
         self.cfg = cfg
         self.prior = prior if prior is not None else load_prior(cfg.map.prior or None)
-        cap = 1 << max(10, int(np.ceil(np.log2(max(cfg.map.initial_capacity, 2)))))
-        self.map = lm.empty(cfg.map.voxel_size_m, cap, self.prior.latent_channels)
+        self.static = core.ImtStatic.from_config(cfg)
+        self.state = core.init(self.static, cfg.map.initial_capacity, self.prior.latent_channels)
         self.store = KeyframeStore()
+        self.hints: dict = {}     # padded cell count -> encode table size that sufficed (grown on overflow)
         self.timings: list[dict] = []
         self.remaps: list[dict] = []
+
+    @property
+    def map(self) -> lm.LatentMap:
+        """The global latent map (world frame)."""
+        return self.state.map
+
+    @map.setter
+    def map(self, m: lm.LatentMap) -> None:
+        self.state = core.state_of(m)
 
     # -- mapping --
     def preprocess(self, points_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Crop, downsample and normals: [N,3] sensor frame -> (points [M,3], normals [M,3]) sensor frame."""
-        from jaxmap.preprocess import preprocess_scan
-
         return preprocess_scan(np.asarray(points_s, np.float32), self.cfg.preprocess)
 
     def encode(self, points_s, normals_s, pose, with_jacobian: bool = True) -> lm.LatentMap:
@@ -68,10 +82,11 @@ class ImtMapper:
         c = self.cfg.map
         cpv = c.transform_cells_per_voxel if with_jacobian else c.cells_per_voxel
         return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
-                               with_jacobian=with_jacobian, cells_per_voxel=cpv)
+                               with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.hints)
 
     def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None) -> dict:
-        """Encode, fuse and keep a frame. Returns its timings (s) and sizes.
+        """Encode, fuse and keep a frame. Returns its timings (s) and sizes: `encode_s` is the host's
+        pooling and the frame program (encode and fuse, one program), `fuse_s` what follows it on the host.
 
         pose_source: where the pose came from, named by the error when it is not a rigid transform
         (None: the user's pose file, and the error says how to fix it)."""
@@ -81,33 +96,27 @@ class ImtMapper:
         t0 = time.perf_counter()
         pts, nrm = self.preprocess(points_s)
         t1 = time.perf_counter()
-        pw = transform_points(pose, pts.astype(np.float64))
-        nw = np.asarray(nrm, np.float64) @ pose[:3, :3].T
-        cells, cnrm, cnt = lm.pool_cells(pw, nw, c.voxel_size_m, c.cells_per_voxel)
-        kf = self.store.add(len(self.store) if frame is None else frame, cells, cnrm, cnt, pose)
-        try:
-            # encode the stored cells (as `remap` will), so a later removal subtracts exactly this
-            local = contributions(self.prior, self.store, [kf], pose[None], c.voxel_size_m, c.min_points)
-            jax.block_until_ready(local.latent)
-            t2 = time.perf_counter()
-            self.map = lm.fuse(self.map, local)
-            jax.block_until_ready(self.map.latent_sum)
-        except BaseException:
-            self.store.pop()          # the store holds exactly the keyframes that are in the map
-            raise
-        t3 = time.perf_counter()
-        info = {"frame": int(self.store.frames[-1]), "points": int(len(pts)), "cells": int(len(cells)),
-                "preprocess_s": t1 - t0, "encode_s": t2 - t1, "fuse_s": t3 - t2,
-                "local_voxels": int(np.count_nonzero(np.asarray(local.weight) > 0)),
-                "map_voxels": self.map.num_active()}
+        T_w_s = SE3.from_matrix(pose)
+        pw = T_w_s.apply(pts.astype(np.float64))
+        nw = T_w_s.rotation().apply(np.asarray(nrm, np.float64))
+        cells = lm.pool_cells(pw, nw, c.voxel_size_m, c.cells_per_voxel)
+        frame = len(self.store) if frame is None else frame
+        # the store and the state are replaced only once the frame is in: a failure leaves both as they were
+        self.state, self.store, stats = core.integrate(self.static, self.state, self.store, self.prior, cells, pose,
+                                                       frame, self.hints)
+        t2 = time.perf_counter()
+        info = {"frame": int(self.store.frames[-1]), "points": int(len(pts)), "cells": int(len(cells[0])),
+                "preprocess_s": t1 - t0, "encode_s": t2 - t1, "fuse_s": time.perf_counter() - t2,
+                "local_voxels": int(stats.local_voxels), "map_voxels": int(stats.active)}
         self.timings.append(info)
         return info
 
     def remap(self, new_poses) -> list[int]:
         """Move the keyframes whose pose changed ([K,4,4] new poses). Returns the ids that moved."""
         t0 = time.perf_counter()
-        self.map, changed = remap(self.map, self.store, new_poses, self.prior, remap_options(self.cfg))
-        jax.block_until_ready(self.map.latent_sum)
+        self.state, self.store, changed = core.remap(self.static, self.state, self.store, self.prior, new_poses,
+                                                     remap_options(self.cfg), self.hints)
+        jax.block_until_ready(self.state.active)
         self.remaps.append({"keyframes": len(changed), "time_s": time.perf_counter() - t0})
         return changed
 
@@ -137,24 +146,19 @@ class ImtMapper:
         return self.store.poses()
 
     def sizes(self) -> dict:
-        return {"map_bytes": self.map.nbytes(), "map_voxels": self.map.num_active(),
+        return {"map_bytes": self.map.nbytes(), "map_voxels": int(self.state.active),
                 "store_bytes": self.store.nbytes(), "store_cells": self.store.cell_count(),
                 "keyframes": len(self.store)}
 
-    # -- checkpoints (orbax) --
+    # -- checkpoints --
     def save(self, path: str) -> None:
         """Write the map, the keyframe store and the config to directory `path` (atomically)."""
-        from jaxmap.checkpoint import save_tree
-
         meta = {"config": to_dict(self.cfg), "table_capacity": int(self.map.table.capacity),
                 "keyframes": len(self.store), "timings": self.timings, "remaps": self.remaps}
         save_tree(path, {"map": self.map, "store": self.store.to_arrays()}, meta)
 
     @classmethod
     def load(cls, path: str, prior=None) -> "ImtMapper":
-        from jaxmap.checkpoint import read_meta, read_tree
-        from jaxmap.grid.hashing import HashTable
-
         path, meta = read_meta(path, "jaxmap imt")
         cfg = from_dict(ImtConfig, meta["config"], source=os.path.join(path, "meta.json"))
         m = cls(cfg, prior)
@@ -163,8 +167,8 @@ class ImtMapper:
         if "latent_sum" not in mp:
             raise DataError(f"{path}: the latent map of this checkpoint was written by an older jaxmap (means and "
                             "Jacobians); map the sequence again")
-        m.map = lm.LatentMap(HashTable(np.asarray(t["keys"]), np.asarray(t["rows"]), np.asarray(t["count"])),
-                             np.asarray(mp["coords"]), np.asarray(mp["latent_sum"]), np.asarray(mp["weight"]), None,
+        m.map = lm.LatentMap(HashTable(*(jnp.asarray(t[k]) for k in ("keys", "rows", "count"))),
+                             *(jnp.asarray(mp[k]) for k in ("coords", "latent_sum", "weight")), None,
                              cfg.map.voxel_size_m)
         m.store = KeyframeStore.from_arrays({k: np.asarray(v) for k, v in tree["store"].items()})
         m.timings, m.remaps = meta.get("timings", []), meta.get("remaps", [])

@@ -26,7 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.grid import hashing
-from jaxmap.imt.latent_map import CORNERS, LatentMap, _keys4
+from jaxmap.grid.features import CORNER_OFFSETS
+from jaxmap.imt.latent_map import LatentMap, voxel_keys
+from jaxmap.mesh import extract_mesh
 
 
 def _tent(q):
@@ -37,8 +39,8 @@ def _tent(q):
 def _query_core(prior, m: LatentMap, points_w, min_weight):
     vs = m.voxel_size
     u = points_w / vs - 0.5                                                 # [P, 3]
-    vox = jnp.floor(u).astype(jnp.int32)[:, None] + jnp.asarray(CORNERS)[None]   # [P, 8, 3]
-    rows = hashing.lookup(m.table, _keys4(vox.reshape(-1, 3))).reshape(vox.shape[:2])
+    vox = jnp.floor(u).astype(jnp.int32)[:, None] + jnp.asarray(CORNER_OFFSETS)[None]   # [P, 8, 3]
+    rows = hashing.lookup(m.table, voxel_keys(vox.reshape(-1, 3))).reshape(vox.shape[:2])
     ok = (rows >= 0) & (m.weight[jnp.maximum(rows, 0)] > jnp.maximum(min_weight, 0.0))  # weight floor
     q = u[:, None] - vox.astype(jnp.float32)                               # [P, 8, 3] voxel units
     w = jnp.where(ok, _tent(q), 0.0)                                         # [P, 8]
@@ -132,8 +134,6 @@ def mesh(prior, m: LatentMap, resolution: int = 4, sigma_threshold_m: float = 0.
     decoded std (metres) exceeds this (<= 0: keep all); min_weight: voxels with weight <= this are not
     decoded.
     """
-    from jaxmap.mesh import extract_mesh
-
     codes, mean, std, vox = lattice_values(prior, m, resolution, min_weight)
     h = m.voxel_size / resolution
     ok = np.isfinite(mean)

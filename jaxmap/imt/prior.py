@@ -1,5 +1,6 @@
-"""The equivariant prior: configuration, training on synthetic patches, shipped weights, CLI.
+"""The equivariant prior: configuration, the `Prior` pytree, shipped weights (save / load).
 
+Training, evaluation and the `jaxmap prior` CLI are in `jaxmap.imt.training`:
 `jaxmap prior train configs/prior.yaml [--out RUN] [--set k=v ...]` trains the encoder and decoder
 (CNP-style: the encoder sees a voxel's surface points and normals, the decoder predicts the SDF at
 query points) on `jaxmap.synth.shapes` patches and writes to the run directory:
@@ -21,89 +22,28 @@ drawn afresh every step.
 """
 from __future__ import annotations
 
-import dataclasses
 import functools
 import importlib.resources
 import json
-import logging
-import math
 import os
-import time
-from dataclasses import dataclass, field
 from typing import Any
 
 import flax.struct
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 from flax import traverse_util
 
-from jaxmap.config import load_config, save_config, to_dict
+from jaxmap.config import from_dict, to_dict
+from jaxmap.config.prior import PriorModelConfig
 from jaxmap.errors import JaxmapError
-from jaxmap.imt.decoder import Decoder, DecoderConfig
-from jaxmap.imt.encoder import Encoder, EncoderConfig
+from jaxmap.imt.decoder import Decoder
+from jaxmap.imt.encoder import Encoder
 from jaxmap.imt.encoder import encode as _encode
 from jaxmap.imt.encoder import encode_with_jacobian as _encode_with_jacobian
 
-log = logging.getLogger("jaxmap")
-
 WEIGHTS_FILE = "prior.npz"
 DEFAULT_CONFIG = "configs/prior.yaml"
-
-
-# ---------------------------------------------------------------------------------------------
-# Configuration (configs/prior.yaml mirrors this tree)
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class PriorModelConfig:
-    encoder: EncoderConfig = field(default_factory=EncoderConfig)
-    decoder: DecoderConfig = field(default_factory=DecoderConfig)
-
-
-@dataclass(frozen=True)
-class PriorDataConfig:
-    n_train: int = 32000          # training voxels (generated once, noise redrawn every step)
-    n_val: int = 2000             # validation voxels (other seed)
-    n_points: int = 64            # points per voxel (padded; valid count varies)
-    min_points: int = 16          # smallest valid count
-    n_queries: int = 128          # SDF queries per voxel
-    near_frac: float = 0.8        # share of queries near the surface (rest uniform in the 2x cube)
-    near_sigma: float = 0.25      # std of near-surface query offsets along the normal (voxels)
-    union_prob: float = 0.35      # share of scenes that are unions of 2-3 primitives
-    point_noise: float = 0.025    # std of point noise (voxels), as the paper's training
-    normal_noise_deg: float = 40.0  # normals tilted by an angle uniform in [0, this] degrees
-    seed: int = 0                 # training set seed; validation uses seed + 1000003
-
-
-@dataclass(frozen=True)
-class PriorTrainConfig:
-    steps: int = 10000               # training steps
-    batch_size: int = 32          # voxels per step
-    lr: float = 2e-3              # Adam peak learning rate
-    warmup: int = 200             # linear warm-up steps, then cosine decay
-    lr_final: float = 2e-5           # learning rate at the end of the cosine decay
-    clamp: float = 1.0            # labels and mean predictions clipped to +-clamp voxels in the NLL
-    latent_reg: float = 1e-3      # weight of mean |F|^2
-    grad_clip: float = 1.0        # global gradient-norm clip
-    val_every: int = 500             # steps between validation passes
-    ckpt_every: int = 1000           # steps between orbax checkpoints
-    resume: bool = False          # continue from the latest checkpoint of the run directory
-    progress: bool = True         # tqdm progress bar
-    seed: int = 0                 # parameter init and noise
-
-
-@dataclass(frozen=True)
-class PriorConfig:
-    """Root config of `jaxmap prior`."""
-
-    model: PriorModelConfig = field(default_factory=PriorModelConfig)
-    data: PriorDataConfig = field(default_factory=PriorDataConfig)
-    train: PriorTrainConfig = field(default_factory=PriorTrainConfig)
-    output: str = "runs/prior"       # run directory (`--out` overrides it)
-    export: str = ""              # also write the trained weights to this path ("" = don't)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,6 +82,11 @@ class Prior:
         """-> `(F [..., 18, 3], J [..., 18, 3, 3], count [...])`; `J = dF/dt` for points + t (exact)."""
         return _encode_with_jacobian(self.encoder, {"params": self.params["encoder"]}, points, normals, mask)
 
+    def per_point(self, points, normals):
+        """Per-point features before pooling: points, normals `[P, 3]` (voxel-centred, voxel units) ->
+        `[P, 18, 3]` (the map's encode: a voxel's latent is their count-weighted mean)."""
+        return self.encoder.apply({"params": self.params["encoder"]}, points, normals, method=Encoder.per_point)
+
     def decode(self, latent, queries):
         """`(F [..., 18, 3], q [..., 3]) -> (sdf mean [...], std [...])`, voxel units, leading dims
         broadcast (e.g. `F[:, None]` with `q [V, Q, 3]`). Invariant: `decode(F R^T, q R^T) == decode(F, q)`."""
@@ -150,22 +95,18 @@ class Prior:
 
 def init_prior(cfg: PriorModelConfig, key) -> Prior:
     """Freshly initialised prior (random weights)."""
-    return Prior(_init_fn(cfg)(key), cfg)
+    return Prior(_init_params(cfg, key), cfg)
 
 
-@functools.lru_cache(maxsize=8)
-def _init_fn(cfg: PriorModelConfig):
-    """Compiled parameter initialiser of one model config (cached: compiling costs ~1 s)."""
-
-    def init(key):
-        ke, kd = jax.random.split(key)
-        pts = jnp.zeros((1, 4, 3))
-        f = jnp.zeros((1, 2 * cfg.encoder.latent, 3))
-        enc = Encoder(cfg.encoder).init(ke, pts, pts)["params"]
-        dec = Decoder(cfg.decoder).init(kd, f, jnp.zeros((1, 3)))["params"]
-        return {"encoder": enc, "decoder": dec}
-
-    return jax.jit(init)
+@functools.partial(jax.jit, static_argnums=0)
+def _init_params(cfg: PriorModelConfig, key):
+    """Parameters of a model config, compiled once per config by jit (compiling costs ~1 s)."""
+    ke, kd = jax.random.split(key)
+    pts = jnp.zeros((1, 4, 3))
+    f = jnp.zeros((1, 2 * cfg.encoder.latent, 3))
+    enc = Encoder(cfg.encoder).init(ke, pts, pts)["params"]
+    dec = Decoder(cfg.decoder).init(kd, f, jnp.zeros((1, 3)))["params"]
+    return {"encoder": enc, "decoder": dec}
 
 
 def count_params(tree) -> int:
@@ -195,8 +136,6 @@ def load_prior(path: str | os.PathLike | None = None, with_meta: bool = False):
 
     Returns a `Prior` (or `(Prior, meta dict)` with `with_meta`).
     """
-    from jaxmap.config import from_dict
-
     path = shipped_weights_path() if path is None else os.fspath(path)
     if not os.path.isfile(path):
         raise JaxmapError(f"prior weights not found: {path}; train them with `jaxmap prior train configs/prior.yaml`")
@@ -206,360 +145,9 @@ def load_prior(path: str | os.PathLike | None = None, with_meta: bool = False):
         flat = {k: jnp.asarray(z[k]) for k in z.files if not k.startswith("__")}
     params = traverse_util.unflatten_dict(flat, sep="/")
     prior = Prior(params, cfg)
-    ref = jax.eval_shape(_init_fn(cfg), jax.random.PRNGKey(0))
+    ref = jax.eval_shape(functools.partial(_init_params, cfg), jax.random.PRNGKey(0))
     if jax.tree_util.tree_structure(ref) != jax.tree_util.tree_structure(params) or any(
         a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(ref), jax.tree_util.tree_leaves(params))
     ):
         raise JaxmapError(f"{path}: weights do not match the model config stored with them")
     return (prior, meta) if with_meta else prior
-
-
-# ---------------------------------------------------------------------------------------------
-# Loss, noise, evaluation
-# ---------------------------------------------------------------------------------------------
-
-
-def perturb(key, points, normals, point_noise: float, normal_noise_deg: float):
-    """Gaussian point noise (std `point_noise`) and normals tilted by an angle uniform in
-    `[0, normal_noise_deg]` degrees towards a random tangent direction. Shapes `[..., 3]` kept."""
-    k1, k2, k3 = jax.random.split(key, 3)
-    points = points + point_noise * jax.random.normal(k1, points.shape, points.dtype)
-    g = jax.random.normal(k2, normals.shape, normals.dtype)
-    u = g - jnp.sum(g * normals, axis=-1, keepdims=True) * normals
-    u = u / (jnp.linalg.norm(u, axis=-1, keepdims=True) + 1e-9)
-    ang = jax.random.uniform(k3, normals.shape[:-1] + (1,), normals.dtype) * math.radians(normal_noise_deg)
-    normals = jnp.cos(ang) * normals + jnp.sin(ang) * u
-    return points, normals
-
-
-def gaussian_nll(mean, std, y, clamp: float):
-    """Per-query NLL of clip(y) under N(clip(mean), std) (clip to +-clamp)."""
-    r = (jnp.clip(mean, -clamp, clamp) - jnp.clip(y, -clamp, clamp)) / std
-    return 0.5 * r * r + jnp.log(std) + 0.5 * math.log(2.0 * math.pi)
-
-
-def _forward(prior: Prior, batch: dict, points, normals):
-    f, _ = prior.encode(points, normals, batch["mask"])
-    mean, std = prior.decode(f[:, None], batch["queries"])
-    return f, mean, std
-
-
-def make_loss(cfg: PriorConfig):
-    dcfg, tcfg = cfg.data, cfg.train
-
-    def loss_fn(params, model_cfg, batch, key):
-        prior = Prior(params, model_cfg)
-        pts, nrm = perturb(key, batch["points"], batch["normals"], dcfg.point_noise, dcfg.normal_noise_deg)
-        f, mean, std = _forward(prior, batch, pts, nrm)
-        nll = jnp.mean(gaussian_nll(mean, std, batch["sdf"], tcfg.clamp))
-        reg = jnp.mean(jnp.sum(f * f, axis=(-2, -1)))
-        return nll + tcfg.latent_reg * reg, nll
-
-    return loss_fn
-
-
-def batch_metrics(prior: Prior, batch: dict, key, clamp: float, point_noise: float = 0.0,
-                  normal_noise_deg: float = 0.0) -> dict:
-    """Per-voxel sums `[B]` (divide by the counts): NLL over all queries, |error| and std over the
-    queries within 0.5 voxel of the surface. Inputs are perturbed when a noise level is non-zero."""
-    pts, nrm = batch["points"], batch["normals"]
-    if point_noise or normal_noise_deg:
-        pts, nrm = perturb(key, pts, nrm, point_noise, normal_noise_deg)
-    _, mean, std = _forward(prior, batch, pts, nrm)
-    y = batch["sdf"]
-    near = (jnp.abs(y) < 0.5).astype(mean.dtype)
-    return {
-        "nll_sum": jnp.sum(gaussian_nll(mean, std, y, clamp), axis=-1),
-        "n": jnp.full(y.shape[:1], y.shape[-1], mean.dtype),
-        "abs_near_sum": jnp.sum(jnp.abs(mean - y) * near, axis=-1),
-        "n_near": jnp.sum(near, axis=-1),
-        "std_near_sum": jnp.sum(std * near, axis=-1),
-    }
-
-
-_batch_metrics_jit = jax.jit(batch_metrics, static_argnames=("clamp", "point_noise", "normal_noise_deg"))
-
-
-def _summarise(sums: dict, sel) -> dict:
-    t = {k: float(np.sum(v[sel])) for k, v in sums.items()}
-    return {
-        "nll": t["nll_sum"] / max(t["n"], 1.0),
-        "mae_near": t["abs_near_sum"] / max(t["n_near"], 1.0),
-        "std_near": t["std_near_sum"] / max(t["n_near"], 1.0),
-    }
-
-
-def evaluate(prior: Prior, data: dict, cfg: PriorConfig, noisy: bool = True, chunk: int = 250, seed: int = 7,
-             by_kind: bool = False) -> dict:
-    """NLL, mean |SDF error| for |sdf| < 0.5 voxel and mean predicted std there, over a whole set.
-
-    `noisy`: inputs perturbed with the training noise of `cfg.data` (fixed keys, reproducible);
-    otherwise clean. NLL uses `cfg.train.clamp`; the |error| is not clamped. The last chunk is
-    padded (one compiled shape). With `by_kind`, also `{"by_kind": {kind: {...}}}` per primary
-    primitive of the scene (`data["kind"]`).
-    """
-    noise = (cfg.data.point_noise, cfg.data.normal_noise_deg) if noisy else (0.0, 0.0)
-    keys = ("points", "normals", "mask", "queries", "sdf")
-    n = len(data["sdf"])
-    chunk = min(chunk, n)
-    parts: dict = {}
-    for i, s in enumerate(range(0, n, chunk)):
-        idx = np.minimum(np.arange(s, s + chunk), n - 1)  # pad by repeating the last voxel
-        b = {k: jnp.asarray(data[k][idx]) for k in keys}
-        m = _batch_metrics_jit(prior, b, jax.random.PRNGKey(seed + i), clamp=cfg.train.clamp,
-                               point_noise=noise[0], normal_noise_deg=noise[1])
-        valid = min(chunk, n - s)
-        for k, v in m.items():
-            parts.setdefault(k, []).append(np.asarray(v)[:valid])
-    sums = {k: np.concatenate(v) for k, v in parts.items()}
-    out = _summarise(sums, slice(None))
-    if by_kind and "kind" in data:
-        from jaxmap.synth.shapes import KINDS
-
-        out["by_kind"] = {KINDS[k]: _summarise(sums, data["kind"] == k) for k in np.unique(data["kind"])}
-    return out
-
-
-def evaluate_patches(prior: Prior, cfg: PriorConfig, n: int = 16, seed: int = 12345) -> dict:
-    """Mean |SDF error| within 0.5 voxel of the surface on the held-out clean patches, queries
-    in the voxel's cell (`inner`) and in the whole 2x neighbourhood (`cube`)."""
-    from jaxmap.synth.shapes import HELDOUT_PATCHES, heldout_patches
-
-    out = {}
-    for name in HELDOUT_PATCHES:
-        for where, inner in (("inner", True), ("cube", False)):
-            data = heldout_patches(name, n=n, seed=seed, n_points=cfg.data.n_points, inner=inner)
-            out[f"{name}_{where}"] = evaluate(prior, data, cfg, noisy=False)["mae_near"]
-    return out
-
-
-# ---------------------------------------------------------------------------------------------
-# Training
-# ---------------------------------------------------------------------------------------------
-
-
-def _patch_spec(d: PriorDataConfig):
-    from jaxmap.synth.shapes import PatchSpec
-
-    return PatchSpec(n_points=d.n_points, min_points=d.min_points, n_queries=d.n_queries,
-                     near_frac=d.near_frac, near_sigma=d.near_sigma)
-
-
-def make_val_set(cfg: PriorConfig) -> dict:
-    """The validation voxels of `cfg.data` (seed + 1000003: disjoint from training)."""
-    from jaxmap.synth.shapes import make_dataset
-
-    d = cfg.data
-    return make_dataset(d.n_val, d.seed + 1000003, _patch_spec(d), union_prob=d.union_prob)
-
-
-def make_datasets(cfg: PriorConfig, progress: bool = False) -> tuple[dict, dict]:
-    """(training, validation) voxel sets of `cfg.data` (dicts of arrays, see `shapes.make_dataset`)."""
-    from jaxmap.synth.shapes import make_dataset
-
-    d = cfg.data
-    spec = _patch_spec(d)
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=d.n_train + d.n_val, desc="prior data", unit="vox", leave=False)
-    upd = bar.update if bar is not None else None
-    train = make_dataset(d.n_train, d.seed, spec, union_prob=d.union_prob, progress=upd)
-    val = make_dataset(d.n_val, d.seed + 1000003, spec, union_prob=d.union_prob, progress=upd)
-    if bar is not None:
-        bar.close()
-    return train, val
-
-
-def make_optimizer(cfg: PriorTrainConfig):
-    sched = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, cfg.warmup, max(cfg.steps, cfg.warmup + 1),
-                                               end_value=cfg.lr_final)
-    return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), optax.adam(sched))
-
-
-def _plot_history(history: list[dict], path: str) -> None:
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-    except ImportError:  # matplotlib is a dev extra; the run is still complete without the plot
-        log.warning("matplotlib not installed; skipping %s", path)
-        return
-    tr = [h for h in history if "train_nll" in h]
-    va = [h for h in history if "val_nll" in h]
-    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
-    ax[0].plot([h["step"] for h in tr], [h["train_nll"] for h in tr], label="train NLL (running mean)")
-    ax[0].plot([h["step"] for h in va], [h["val_nll"] for h in va], "o-", label="validation NLL")
-    ax[0].set_xlabel("step")
-    ax[0].set_ylabel("Gaussian NLL (voxel units)")
-    ax[0].legend()
-    ax[1].plot([h["step"] for h in va], [h["val_mae_near"] for h in va], "o-", label="validation |err|, |sdf|<0.5")
-    ax[1].set_xlabel("step")
-    ax[1].set_ylabel("mean |SDF error| (voxels)")
-    ax[1].set_yscale("log")
-    ax[1].legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
-def train(cfg: PriorConfig, out_dir: str) -> dict:
-    """Train a prior; write the run directory; return the summary dict (also in metrics.json)."""
-    import orbax.checkpoint as ocp
-    from tqdm import tqdm
-
-    logging.getLogger("absl").setLevel(logging.WARNING)  # orbax logs every save at INFO
-    t_start = time.time()
-    os.makedirs(out_dir, exist_ok=True)
-    save_config(cfg, os.path.join(out_dir, "config.yaml"))
-    tcfg = cfg.train
-
-    train_set, val_set = make_datasets(cfg, progress=tcfg.progress)
-    t_data = time.time() - t_start
-    log.info("prior: %d training / %d validation voxels generated in %.1f s", len(train_set["sdf"]),
-             len(val_set["sdf"]), t_data)
-
-    key = jax.random.PRNGKey(tcfg.seed)
-    key, k_init = jax.random.split(key)
-    prior = init_prior(cfg.model, k_init)
-    opt = make_optimizer(tcfg)
-    state = {"params": prior.params, "opt_state": opt.init(prior.params), "step": jnp.asarray(0, jnp.int32)}
-
-    ckpt_dir = os.path.abspath(os.path.join(out_dir, "checkpoints"))
-    mngr = ocp.CheckpointManager(ckpt_dir, options=ocp.CheckpointManagerOptions(max_to_keep=2, create=True))
-    history: list[dict] = []
-    hist_path = os.path.join(out_dir, "history.json")
-    if tcfg.resume and mngr.latest_step() is not None:
-        state = mngr.restore(mngr.latest_step(), args=ocp.args.StandardRestore(state))
-        if os.path.isfile(hist_path):
-            with open(hist_path) as f:
-                history = [h for h in json.load(f) if h["step"] <= int(state["step"])]
-        log.info("prior: resumed from step %d", int(state["step"]))
-
-    loss_fn = make_loss(cfg)
-    model_cfg = cfg.model
-
-    @jax.jit
-    def step_fn(state, batch, base_key):
-        key = jax.random.fold_in(base_key, state["step"])  # noise key: a function of the step
-        (loss, nll), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"], model_cfg, batch, key)
-        updates, opt_state = opt.update(grads, state["opt_state"], state["params"])
-        params = optax.apply_updates(state["params"], updates)
-        return {"params": params, "opt_state": opt_state, "step": state["step"] + 1}, loss, nll
-
-    keys = ("points", "normals", "mask", "queries", "sdf")
-    n_train = len(train_set["sdf"])
-    rng = np.random.default_rng(tcfg.seed + int(state["step"]))
-    start = int(state["step"])
-    run_nll, run_n = 0.0, 0
-    t_train0 = time.time()
-    bar = tqdm(range(start, tcfg.steps), desc="prior train", unit="step", disable=not tcfg.progress,
-               initial=start, total=tcfg.steps)
-    for step in bar:
-        idx = rng.integers(0, n_train, tcfg.batch_size)
-        batch = {k: jnp.asarray(train_set[k][idx]) for k in keys}
-        state, loss, nll = step_fn(state, batch, key)
-        run_nll += float(nll)
-        run_n += 1
-        s = step + 1
-        if s % 50 == 0 or s == tcfg.steps:
-            history.append({"step": s, "train_nll": run_nll / run_n, "time_s": time.time() - t_start})
-            bar.set_postfix(nll=f"{run_nll / run_n:.3f}")
-            run_nll, run_n = 0.0, 0
-        if s % tcfg.val_every == 0 or s == tcfg.steps:
-            m = evaluate(Prior(state["params"], model_cfg), val_set, cfg)
-            history.append({"step": s, "val_nll": m["nll"], "val_mae_near": m["mae_near"],
-                            "val_std_near": m["std_near"], "time_s": time.time() - t_start})
-            log.info("prior: step %d  val NLL %.4f  |err| near surface %.4f voxel", s, m["nll"], m["mae_near"])
-        if s % tcfg.ckpt_every == 0 or s == tcfg.steps:
-            mngr.save(s, args=ocp.args.StandardSave(state))
-            with open(hist_path, "w") as f:
-                json.dump(history, f)
-    bar.close()
-    mngr.wait_until_finished()
-    t_train = time.time() - t_train0
-
-    prior = Prior(state["params"], model_cfg)
-    val = evaluate(prior, val_set, cfg, by_kind=True)
-    val_clean = evaluate(prior, val_set, cfg, noisy=False)
-    patches = evaluate_patches(prior, cfg)
-    summary = {
-        "steps": tcfg.steps,
-        "data_time_s": round(t_data, 1),
-        "train_time_s": round(t_train, 1),
-        "total_time_s": round(time.time() - t_start, 1),
-        "val_nll": val["nll"],
-        "val_mae_near": val["mae_near"],
-        "val_std_near": val["std_near"],
-        "val_clean_nll": val_clean["nll"],
-        "val_clean_mae_near": val_clean["mae_near"],
-        "patch_mae_near": patches,
-        "val_mae_near_by_kind": {k: v["mae_near"] for k, v in val["by_kind"].items()},
-        "params_encoder": count_params(prior.params["encoder"]),
-        "params_decoder": count_params(prior.params["decoder"]),
-    }
-    weights = os.path.join(out_dir, WEIGHTS_FILE)
-    summary["weights_bytes"] = save_prior(prior, weights, meta=summary)
-    if cfg.export:
-        save_prior(prior, cfg.export, meta=summary)
-        summary["exported_to"] = cfg.export
-    with open(hist_path, "w") as f:
-        json.dump(history, f)
-    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-        json.dump(summary, f, indent=2)
-    _plot_history(history, os.path.join(out_dir, "loss.png"))
-    return summary
-
-
-# ---------------------------------------------------------------------------------------------
-# CLI
-# ---------------------------------------------------------------------------------------------
-
-
-def _load_cfg(args) -> PriorConfig:
-    """Config from `args.config`; when that is the CLI default and absent (e.g. an installed package
-    run outside the repository), the built-in defaults, which equal configs/prior.yaml."""
-    path = getattr(args, "config", None) or DEFAULT_CONFIG
-    if path == DEFAULT_CONFIG and not os.path.isfile(path):
-        path = None
-    overrides = list(getattr(args, "overrides", None) or [])
-    if getattr(args, "out", None) and getattr(args, "action", "train") == "train":
-        overrides.append(f"output={args.out}")
-    return load_config(path, overrides, schema=PriorConfig)
-
-
-def cli_train(args) -> int:
-    """`jaxmap prior train [config] [--out RUN] [--set k=v ...]`. Prints the summary as one JSON line."""
-    cfg = _load_cfg(args)
-    summary = train(cfg, cfg.output)
-    print(json.dumps(summary))
-    return 0
-
-
-def cli_eval(args) -> int:
-    """`jaxmap prior eval [config] [--out RUN] [--set k=v ...]`: validation figures (one JSON line) for
-    the shipped weights, or for `RUN/prior.npz` when `--out RUN` is given."""
-    cfg = _load_cfg(args)
-    path = os.path.join(args.out, WEIGHTS_FILE) if getattr(args, "out", None) else None
-    prior, meta = load_prior(path, with_meta=True)
-    cfg = dataclasses.replace(cfg, model=prior.cfg)
-    val = make_val_set(cfg)
-    noisy = evaluate(prior, val, cfg, by_kind=True)
-    clean = evaluate(prior, val, cfg, noisy=False)
-    out = {
-        "weights": path or shipped_weights_path(),
-        "val_nll": noisy["nll"],
-        "val_mae_near": noisy["mae_near"],
-        "val_std_near": noisy["std_near"],
-        "val_clean_nll": clean["nll"],
-        "val_clean_mae_near": clean["mae_near"],
-        "patch_mae_near": evaluate_patches(prior, cfg),
-        "val_mae_near_by_kind": {k: v["mae_near"] for k, v in noisy["by_kind"].items()},
-        "params_encoder": count_params(prior.params["encoder"]),
-        "params_decoder": count_params(prior.params["decoder"]),
-        "trained": {k: meta[k] for k in ("steps", "train_time_s", "total_time_s") if k in meta},
-    }
-    print(json.dumps(out))
-    return 0

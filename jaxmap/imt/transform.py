@@ -37,7 +37,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.grid import hashing
-from jaxmap.imt.latent_map import CORNERS, LatentMap, VoxelBatch, _keys4, empty, fuse
+from jaxmap.grid.features import CORNER_OFFSETS
+from jaxmap.imt.latent_map import LatentMap, VoxelBatch, voxel_keys, empty, fuse
 from jaxmap.imt.vn import rotate
 
 METHODS = ("trilinear", "softmax")
@@ -69,7 +70,7 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     frac = u - base
     rb = jax.vmap(rotate)(b, R)                                             # F R^T, R J R^T per entry
     lat, jac = rb.latent, rb.jac
-    corners = jnp.asarray(CORNERS, jnp.float32)                            # [8, 3]
+    corners = jnp.asarray(CORNER_OFFSETS, jnp.float32)                            # [8, 3]
     s = jnp.prod(jnp.where(corners[None] > 0, frac[:, None], 1.0 - frac[:, None]), axis=-1)  # [P, 8]
     if power != 1.0:
         s = s ** power
@@ -96,11 +97,11 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     active = m.active()
     c = (m.coords.astype(jnp.float32) + 0.5) * vs
     u = (c @ R.T + t) / vs - 0.5                                            # [R, 3]
-    cand = (jnp.floor(u)[:, None] + jnp.asarray(CORNERS)[None]).astype(jnp.int32).reshape(-1, 3)  # [8R, 3]
+    cand = (jnp.floor(u)[:, None] + jnp.asarray(CORNER_OFFSETS)[None]).astype(jnp.int32).reshape(-1, 3)  # [8R, 3]
     cvalid = jnp.repeat(active, 8)
     # Unique candidate global voxels: a scratch hash table gives each distinct voxel one row.
     cap = 1 << int(np.ceil(np.log2(max(2, 16 * m.rows))))
-    _, rows, overflow = hashing.insert(hashing.create(cap), _keys4(cand), cvalid)
+    _, rows, overflow = hashing.insert(hashing.create(cap), voxel_keys(cand), cvalid)
     placed = cvalid & (rows >= 0)
     idx_all = jnp.arange(cand.shape[0], dtype=jnp.int32)
     rep = jnp.full((cap,), cand.shape[0], jnp.int32).at[jnp.where(placed, rows, cap)].min(idx_all, mode="drop")
@@ -109,7 +110,7 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     cn = (cand.astype(jnp.float32) + 0.5) * vs                              # [8R, 3] global metres
     x = ((cn - t) @ R) / vs - 0.5                                           # [8R, 3] = T^-1 c_n, local index
     nb = jnp.round(x).astype(jnp.int32)[:, None] + jnp.asarray(_NEIGHBOURS)[None]   # [8R, 27, 3]
-    nrow = hashing.lookup(m.table, _keys4(nb.reshape(-1, 3))).reshape(nb.shape[:2])  # [8R, 27]
+    nrow = hashing.lookup(m.table, voxel_keys(nb.reshape(-1, 3))).reshape(nb.shape[:2])  # [8R, 27]
     ok = (nrow >= 0) & active[jnp.maximum(nrow, 0)]
     d2 = jnp.sum((x[:, None] - nb.astype(jnp.float32)) ** 2, axis=-1)       # |t_nm|^2, rotation invariant
     d2 = jnp.where(ok, d2, jnp.inf)

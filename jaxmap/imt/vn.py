@@ -46,6 +46,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmap.geometry import rotate_vectors
+
 EPS = 1e-6  # guard of the projection in VNLeakyReLU, as in the reference implementation
 
 
@@ -60,13 +62,21 @@ def _vn_init(key, shape, dtype=jnp.float32):
 
 
 class VNLinear(nn.Module):
-    """Channel mixing without bias. `V [..., C_in, 3] -> [..., features, 3]`, `W` is `[features, C_in]`."""
+    """Channel mixing without bias. `V [..., C_in, 3] -> [..., features, 3]`, `W` is `[features, C_in]`.
+
+    channels_last: the features are stored transposed, `[..., 3, C]` (vectors as columns): the same
+    function with the same parameters, but a plain matmul over the last axis (`x @ W^T`, one GEMM),
+    which XLA:CPU runs ~2x faster than the contraction over a middle axis for the hundreds of thousands
+    of (point, voxel) pairs of a frame (`encoder.Encoder.per_point` uses it)."""
 
     features: int
+    channels_last: bool = False
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        w = self.param("kernel", _vn_init, (self.features, x.shape[-2]))
+        w = self.param("kernel", _vn_init, (self.features, x.shape[-1 if self.channels_last else -2]))
+        if self.channels_last:
+            return x @ w.T
         return jnp.einsum("oc,...cd->...od", w, x)
 
 
@@ -82,14 +92,16 @@ class VNLeakyReLU(nn.Module):
 
     negative_slope: float = 0.0
     share_direction: bool = False
+    channels_last: bool = False     # `[..., 3, C]` features, as `VNLinear`
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
-        c = x.shape[-2]
+        c = x.shape[-1 if self.channels_last else -2]
         u = self.param("direction", _vn_init, (1 if self.share_direction else c, c))
-        d = jnp.einsum("oc,...cd->...od", u, x)
-        dot = jnp.sum(x * d, axis=-1, keepdims=True)
-        d_norm_sq = jnp.sum(d * d, axis=-1, keepdims=True)
+        vec = -2 if self.channels_last else -1                     # the axis of the 3 components
+        d = x @ u.T if self.channels_last else jnp.einsum("oc,...cd->...od", u, x)
+        dot = jnp.sum(x * d, axis=vec, keepdims=True)
+        d_norm_sq = jnp.sum(d * d, axis=vec, keepdims=True)
         projected = x - (dot / (d_norm_sq + EPS)) * d
         out = jnp.where(dot >= 0, x, projected)
         if self.negative_slope:
@@ -194,12 +206,6 @@ def _is_marked(x) -> bool:
     return isinstance(x, (Vec, Jac)) or bool(_marks(x))
 
 
-def rotate_vectors(v: jax.Array, R: jax.Array) -> jax.Array:
-    """Rows of 3-vectors `[..., 3]` rotated by `R [3,3]`: `v R^T`."""
-    R = jnp.asarray(R, dtype=v.dtype)
-    return v @ R.T
-
-
 def rotate_jacobians(j: jax.Array, R: jax.Array) -> jax.Array:
     """Jacobians `[..., 3, 3]` rotated by `R [3,3]`: `R J R^T`."""
     R = jnp.asarray(R, dtype=j.dtype)
@@ -212,7 +218,7 @@ def _rotate_leaf(kind: str, v, R):
     if kind == "vec":
         if v.shape[-1] != 3:
             raise ValueError(f"Vec leaf must have last axis 3, got shape {v.shape}")
-        return rotate_vectors(v, R), 1
+        return rotate_vectors(jnp.asarray(R, v.dtype), v, xnp=jnp), 1
     if v.shape[-2:] != (3, 3):
         raise ValueError(f"Jac leaf must end in [3, 3], got shape {v.shape}")
     return rotate_jacobians(v, R), 1
