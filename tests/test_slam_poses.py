@@ -154,7 +154,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
         def trajectory(self):
             return gt[:self.n]
 
-    monkeypatch.setattr("jaxmap.slam.frontend.FrontEnd", ScriptedFrontEnd)
+    monkeypatch.setattr("jaxmap.slam.run.FrontEnd", ScriptedFrontEnd)
     cfg = SlamConfig(data=DataConfig(path=str(small_room), every_frame=1, end_frame=len(gt)), mesh_at_loops=False,
                      output=str(tmp_path / "run"))
     mapper = ImtMapper(cfg.imt())

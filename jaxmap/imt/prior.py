@@ -1,24 +1,9 @@
-"""The equivariant prior: configuration, the `Prior` pytree, shipped weights (save / load).
-
-Training, evaluation and the `jaxmap prior` CLI are in `jaxmap.imt.training`:
-`jaxmap prior train configs/prior.yaml [--out RUN] [--set k=v ...]` trains the encoder and decoder
-(CNP-style: the encoder sees a voxel's surface points and normals, the decoder predicts the SDF at
-query points) on `jaxmap.synth.shapes` patches and writes to the run directory:
-`config.yaml` (resolved), `prior.npz` (weights + model config + figures), `metrics.json`,
-`history.json`, `loss.png`, and orbax checkpoints under `checkpoints/` (resumed with
-`--set train.resume=true`). `export` in the config also copies the weights (e.g. to the package).
-
-`jaxmap prior eval [config] [--out RUN]` prints validation figures (NLL, mean |SDF error| near the
-surface, held-out plane / sphere / box-corner patches) for the shipped weights, or for RUN's.
+"""The equivariant prior: the `Prior` pytree and its shipped weights (save / load); its config is
+`jaxmap.config.PriorConfig`, its training `jaxmap.imt.training` (`jaxmap prior train`).
 
 `load_prior(path=None)` returns a `Prior` (a pytree: parameters + static model config) with
 `encode`, `encode_with_jacobian` and `decode`; all units are voxels, all positions relative to the
 voxel centre (see `encoder.py`, `decoder.py`).
-
-Loss (as DI-Fusion / IMT): Gaussian NLL of the clamped label under N(clamped mean, std),
-`0.5 ((clip(mu) - clip(y)) / std)^2 + log std + 0.5 log 2 pi`, averaged over queries, plus
-`latent_reg * mean |F|^2`. Point noise (Gaussian) and normal noise (tilt by a random angle) are
-drawn afresh every step.
 """
 from __future__ import annotations
 

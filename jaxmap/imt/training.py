@@ -1,4 +1,4 @@
-"""Training and evaluation of the equivariant prior, and the `jaxmap prior` CLI.
+"""Training and evaluation of the equivariant prior (`jaxmap prior`, `jaxmap.commands.prior`).
 
 `jaxmap prior train configs/prior.yaml [--out RUN] [--set k=v ...]` trains the encoder and decoder
 (CNP-style: the encoder sees a voxel's surface points and normals, the decoder predicts the SDF at
