@@ -14,7 +14,7 @@ def test_shipped_city_config_loads_and_matches_paper_defaults():
     s, t = cfg.sampling, cfg.train
     assert s.surface_sample_range_m == 0.3 and t.sigma_sigmoid_m == 0.1 and t.weight_e == 0.08
     assert s.surface_sample_n == 3 and s.free_ray_n == 6 and cfg.window.carve
-    assert s.sigma_m == 0.05  # the paper's tr / 3 = 0.1 measured worse on the validation suite (README)
+    assert s.sigma_m == 0.05  # the paper's tr / 3 = 0.1 measured worse on the validation suite (docs/benchmarks.md)
 
 
 def test_unknown_key_names_file_key_and_suggestion(tmp_path):

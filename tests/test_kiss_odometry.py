@@ -13,7 +13,7 @@ kiss_icp = pytest.importorskip("kiss_icp", reason="kiss-icp is not installed (pi
 @pytest.fixture(scope="module")
 def dense_city(tmp_path_factory):
     """The small city with 2 cm LiDAR noise, 60 frames (1.2 m apart) instead of 15 (4.7 m apart and turns of
-    up to 82 deg between scans: too far for KISS-ICP's constant-velocity prediction, see the README)."""
+    up to 82 deg between scans: too far for KISS-ICP's constant-velocity prediction, see docs/slam.md)."""
     from jaxmap.synth.city import generate_city
 
     out = tmp_path_factory.mktemp("city_dense")

@@ -1,4 +1,4 @@
-"""jaxmap.metrics: the N3/SHINE evaluation protocol (README) on scenes with known answers, checked against a
+"""jaxmap.metrics: the N3/SHINE evaluation protocol (docs/evaluation.md) on scenes with known answers, checked against a
 literal implementation written here (numpy brute force) and against open3d's own crop / sampling /
 down-sampling."""
 import json

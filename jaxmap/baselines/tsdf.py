@@ -28,7 +28,7 @@ float32 ``sum(w * sdf)``, float32 ``sum(w)``).
 Open3D's ``VoxelBlockGrid`` as storage was considered: the values could be written into its
 ``attribute('tsdf')``/``attribute('weight')`` blocks after activating the block coordinates in its hash map,
 and ``extract_triangle_mesh`` would then mesh them. It is not used because (a) every method compared must be
-meshed by :func:`jaxmap.mesh.extract_mesh` on the one global lattice (README: Evaluation protocol), while Open3D meshes
+meshed by :func:`jaxmap.mesh.extract_mesh` on the one global lattice (docs/evaluation.md), while Open3D meshes
 on its own voxel-centre lattice with its own weight threshold and no masking rule; (b) the block layout adds
 a reshaping step without saving time or memory over the sorted table; (c) it would make open3d a hard
 requirement of the baseline.

@@ -1,4 +1,4 @@
-"""Pictures for the README, made from run outputs (matplotlib, a dev dependency).
+"""Pictures for the README and docs/, made from run outputs (matplotlib, a dev dependency).
 
     python -m jaxmap.bench.figures ghost --data DATA --mesh LABEL=MESH [--mesh LABEL=MESH ...] --out PNG
 

@@ -5,7 +5,7 @@ The prior (`load_prior()`) turns the points and normals around a voxel into a la
 SDF mean and standard deviation (voxel units) that are exactly invariant to a common rotation.
 `rotate(tree, R)` rotates every `Vec`/`Jac`-marked leaf of a pytree (see `jaxmap.imt.vn`).
 
-The latent map (README: Architecture): `pool_cells` + `encode_keyframes` / `encode_frame` (a frame's
+The latent map (docs/architecture.md): `pool_cells` + `encode_keyframes` / `encode_frame` (a frame's
 local map on the world grid), `fuse` / `remove` (eq. 11 on sums), `transform` (eqs. 3-10, onto the
 global grid), `mesh` / `query` (decoded SDF, marching cubes). The map of a sequence is pure functions
 over one state (`jaxmap.imt.core`: `init`, `integrate` = one compiled `step` per frame, `remap`

@@ -23,7 +23,7 @@ and a pose `T = [R | t]` from frame A to the global frame. Then, per local voxel
      `F_n = sum_m s_nm F_n|m`, `w_n = sum_m s_nm w_m`. The paper's temperature is 1 / voxel_size^2
      in voxel units (distances in metres), which makes the weights nearly uniform.
    `jaxmap bench imt` measures both; trilinear is the default because it measures better and keeps
-   the weight mass (see README).
+   the weight mass (see docs/remapping.md).
 
 Everything runs inside `jit` with static shapes: the output of a map with R rows has 8R entries.
 """

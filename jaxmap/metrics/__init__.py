@@ -1,4 +1,4 @@
-"""Reconstruction metrics: the N3-Mapping / SHINE-Mapping evaluation protocol (README: Evaluation protocol).
+"""Reconstruction metrics: the N3-Mapping / SHINE-Mapping evaluation protocol (docs/evaluation.md).
 
 The default protocol ("shine") is a literal implementation of SHINE-Mapping's ``eval_mesh``
 (``utils/eval_utils.py``) with its MaiCity settings, which N3-Mapping reports with; world frame, metres in,
