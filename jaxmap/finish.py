@@ -61,9 +61,9 @@ def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", 
 
 
 def has_ground_truth(data_path: str) -> bool:
-    """The data has gt_points.ply: in its directory, or beside its file (a ROS bag, a LAS file)."""
-    here = data_path if os.path.isdir(data_path) else os.path.dirname(os.path.abspath(data_path))
-    return os.path.isfile(os.path.join(here, "gt_points.ply"))
+    """The run's data is a directory holding gt_points.ply: what the evaluator reads
+    (`jaxmap.metrics.read_gt`; a ROS bag or LAS file with a GT beside it is not evaluated here)."""
+    return os.path.isfile(os.path.join(data_path, "gt_points.ply"))
 
 
 def evaluate_run_mesh(mesh_path: str, cfg, floor: bool = True) -> dict:

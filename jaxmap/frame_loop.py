@@ -181,15 +181,15 @@ def run_frames(frames: Iterable[Frame], step: Callable[[Frame], tuple[dict, np.n
                         since_save = 0
                     stop.check()  # Ctrl-C or SIGTERM during the frame: stop here, between frames
             except KeyboardInterrupt as e:
-                _close(frames, bar)
+                _close(frames, bar)  # no frame is read while the checkpoint is written
                 _interrupted(e, stop.forced, checkpoints, start + done)
                 raise
     except BaseException:
-        _close(frames, bar)
         if viewer is not None:
             viewer.close()
         raise
-    _close(frames, bar)
+    finally:
+        _close(frames, bar)
     if checkpoints is not None:
         checkpoints.save(False)
     return LoopResult(done, time.perf_counter() - t_start)
@@ -223,18 +223,16 @@ def _close(frames, bar) -> None:
 
 def _interrupted(e: KeyboardInterrupt, forced: bool, checkpoints: Checkpoints | None, frames: int) -> None:
     """Save what the stopped run mapped (unless Ctrl-C came twice) and say how to go on."""
-    what = "terminated (SIGTERM)" if getattr(e, "signum", None) == signal.SIGTERM else "interrupted"
     if checkpoints is None:
         return
-    go_on = f"; continue with: {checkpoints.resume}" if checkpoints.resume else ""
+    what = "terminated (SIGTERM)" if getattr(e, "signum", None) == signal.SIGTERM else "interrupted"
     if forced:
         checkpoints.wait()
-        print(f"\n{what} twice: stopped without saving" + (f"; continue from the last checkpoint with: "
-                                                           f"{checkpoints.resume}" if checkpoints.resume else ""),
-              file=sys.stderr)
-        return
-    checkpoints.save(False)
-    print(f"\n{what}: checkpoint of {frames} frames saved in {checkpoints.path}{go_on}", file=sys.stderr)
+        msg, go_on = f"{what} twice: stopped without saving", "continue from the last checkpoint with"
+    else:
+        checkpoints.save(False)
+        msg, go_on = f"{what}: checkpoint of {frames} frames saved in {checkpoints.path}", "continue with"
+    print(f"\n{msg}" + (f"; {go_on}: {checkpoints.resume}" if checkpoints.resume else ""), file=sys.stderr)
 
 
 def open_run_sequence(cfg):
@@ -244,14 +242,16 @@ def open_run_sequence(cfg):
                          every_frame=d.every_frame, topic=d.topic)
 
 
-def medians(timings: list[dict], keys: Iterable[str], skip_first: int = 1) -> dict:
-    """`median_<key>` over the records after the first `skip_first` (compiling) frames, and the count of
-    frames that had no point to map (`empty_frames`: empty scans, or all cropped away)."""
+def medians(timings: list[dict], keys: Iterable[str], skip_first: int = 1, p95: Iterable[str] = ()) -> dict:
+    """`median_<key>` (and `p95_<key>` for the keys in `p95`) over the records after the first `skip_first`
+    (compiling) frames, and the count of frames that had no point to map (`empty_frames`: empty scans, or
+    all cropped away)."""
     rows = timings[skip_first:] if len(timings) > skip_first else timings
     out = {}
-    for k in keys:
-        vals = [r[k] for r in rows if k in r]
-        out[f"median_{k}"] = float(np.median(vals)) if vals else float("nan")
+    for name, stat, ks in (("median", np.median, keys), ("p95", lambda v: np.percentile(v, 95), p95)):
+        for k in ks:
+            vals = [r[k] for r in rows if k in r]
+            out[f"{name}_{k}"] = float(stat(vals)) if vals else float("nan")
     out["empty_frames"] = int(sum(1 for r in timings if r.get("points", 1) == 0))
     return out
 

@@ -79,6 +79,12 @@ class _Batched:
         """From a matrix [..., k, k] (numpy, jax or nested lists), kept as it is (no copy, no cast)."""
         return cls(_host_or_jax(matrix))
 
+    @classmethod
+    def identity(cls, batch_shape: tuple = (), dtype=np.float64, xnp=np):
+        """Identity [*batch_shape, k, k] of `dtype` as `xnp` arrays (k = 3 for SO3, 4 for SE3)."""
+        k = cls.SIZE
+        return cls(xnp.broadcast_to(xnp.eye(k, dtype=dtype), tuple(batch_shape) + (k, k)))
+
     def as_matrix(self):
         """The matrix [..., k, k]."""
         return self.matrix
@@ -111,11 +117,7 @@ class SO3(_Batched):
     """
 
     matrix: Any
-
-    @staticmethod
-    def identity(batch_shape: tuple = (), dtype=np.float64, xnp=np) -> SO3:
-        """Identity rotations [*batch_shape, 3, 3] of `dtype` as `xnp` arrays."""
-        return SO3(xnp.broadcast_to(xnp.eye(3, dtype=dtype), tuple(batch_shape) + (3, 3)))
+    SIZE = 3   # the matrix is [..., 3, 3]
 
     @staticmethod
     def from_axis_angle(axis, angle) -> SO3:
@@ -170,11 +172,7 @@ class SE3(_Batched):
     """
 
     matrix: Any
-
-    @staticmethod
-    def identity(batch_shape: tuple = (), dtype=np.float64, xnp=np) -> SE3:
-        """Identity transforms [*batch_shape, 4, 4] of `dtype` as `xnp` arrays."""
-        return SE3(xnp.broadcast_to(xnp.eye(4, dtype=dtype), tuple(batch_shape) + (4, 4)))
+    SIZE = 4   # the matrix is [..., 4, 4]
 
     @staticmethod
     def from_rotation_and_translation(rotation, translation) -> SE3:

@@ -129,10 +129,7 @@ class N3Mapper:
     def timing_summary(self, skip_first: int = 1) -> dict:
         """Per-frame medians and p95 over frames after the first `skip_first` (compiling) frames, the
         count of frames that had no point to map, and the store's and table's sizes (timing.json)."""
-        out = medians(self.timings, ("preprocess_s", "map_s", "total_s"), skip_first)
-        rows = self.timings[skip_first:] if len(self.timings) > skip_first else self.timings
-        vals = [r["total_s"] for r in rows if "total_s" in r]
-        out["p95_total_s"] = float(np.percentile(vals, 95)) if vals else float("nan")
+        out = medians(self.timings, ("preprocess_s", "map_s", "total_s"), skip_first, p95=("total_s",))
         if self.timings:
             out["max_store_pairs"] = int(max(r["store_pairs"] for r in self.timings))
             out["final_feature_rows"] = int(self.timings[-1]["feature_rows"])

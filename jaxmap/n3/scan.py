@@ -1,8 +1,8 @@
-"""Host side of a frame: check and preprocess a scan, move it to the map frame, pad it to a bucket,
-and read + preprocess the next frames in a background thread while the device maps this one.
+"""Host side of a frame: check and preprocess a scan, move it to the map frame, pad it to a bucket.
 
 Preprocessing (crop, downsample, PCA normals; numpy/scipy) is ~0.2 s per city scan on 2 cores;
-the prefetch thread takes it off the critical path (numpy and scipy's k-d tree release the GIL).
+`jaxmap map` runs it for the next frames in the frame loop's prefetch thread (`jaxmap.n3.run.prepare_frame`,
+`jaxmap.frame_loop.Prefetcher`), off the critical path (numpy and scipy's k-d tree release the GIL).
 """
 from __future__ import annotations
 
