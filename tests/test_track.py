@@ -94,6 +94,19 @@ def test_tracking_recovers_5_deg_and_half_a_metre_in_an_n3_map(hall_map):
     assert res.pose.dtype == np.float64 and np.allclose(res.pose[:3, :3] @ res.pose[:3, :3].T, np.eye(3))
 
 
+def test_the_search_brings_a_guess_from_outside_the_fields_reach(hall_map):
+    """1.2 m along the hall and 15 deg off: the field's gradient does not reach that far (LM alone stays
+    wrong, and says so); the grid search of shifts and turns before it gets back within 0.2 deg, 2 cm."""
+    T0 = make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.deg2rad(15.0)),
+                   SENSOR + np.array([1.2, 0.3, 0.0]))
+    alone = track_scan(hall_map.static, hall_map.state, scan(), T0)
+    rot, pos = errors(alone.pose)
+    assert not alone.ok and (rot > 1.0 or pos > 0.1), (alone, rot, pos)
+    res = track_scan(hall_map.static, hall_map.state, scan(), T0, TrackOptions(search_m=2.0))
+    rot, pos = errors(res.pose)
+    assert res.ok and rot < 0.2 and pos < 0.02, (res, rot, pos)
+
+
 @pytest.mark.parametrize("T0, why", [
     (make_pose(np.eye(3), SENSOR + np.array([40.0, 0.0, 0.0])), "40 m off: outside the map"),
     (make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.pi / 2), SENSOR), "turned 90 deg"),

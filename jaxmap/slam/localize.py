@@ -4,8 +4,9 @@
 Per frame (through the frame loop): the pose is predicted with a constant-velocity model from the two
 poses before it (the first frame: --init, else the sequence's first pose), the scan is cropped as the
 map's config crops (`preprocess`: range and height) and voxel-downsampled (`voxel_m`), and tracked
-against the map from the prediction, after a search of horizontal shifts (`TrackOptions.search_m`:
-+-0.5 m, or +-2 m for the first two frames and after a lost one, where no velocity is known). A frame whose tracking is not `ok` (too few points inside the map,
+against the map from the prediction; if that fails (a corner the prediction did not turn into), again
+after a search of shifts and turns (`TrackOptions.search_m`: +-0.5 m, +-20 degrees). The first two
+frames, and the frame after a lost one, where no velocity is known, are searched at once (+-2 m). A frame whose tracking is not `ok` (too few points inside the map,
 a large RMS SDF, no convergence) keeps the prediction and counts as not localised; the next frames
 are predicted on from it. The first frame must localise: if it does not (a sequence outside the map,
 or an initial pose far off), the run stops with a DataError that says so and what to try.
@@ -38,7 +39,7 @@ from jaxmap.slam.trajectory import write_kitti, write_tum
 
 DEFAULT_VOXEL_M = 0.2   # scans are downsampled to this before the `max_points` subset is drawn
 SEARCH_WIDE_M = 2.0     # the search's half-width where the guess is weak: the first two frames, after a lost one
-SEARCH_NARROW_M = 0.5   # ... and where constant velocity predicted it
+SEARCH_NARROW_M = 0.5   # ... and where LM from the constant-velocity prediction failed
 
 
 def read_init(text: str) -> np.ndarray:
@@ -109,11 +110,16 @@ class LocalizeStep:
     def __call__(self, frame: Frame) -> tuple[dict, np.ndarray]:
         guess = predict(self.poses) if self.poses else self.init
         weak = len(self.poses) < 2 or not self.records[-1]["ok"]
-        opts = dataclasses.replace(self.opts, search_m=SEARCH_WIDE_M if weak else SEARCH_NARROW_M)
         t0 = time.perf_counter()
-        res = track_scan(self.mapper.static, self.mapper.state, frame.points, guess, opts)
+        # where constant velocity predicted the pose, LM from it alone first (the search costs more than LM)
+        tries = [SEARCH_WIDE_M] if weak else [0.0, SEARCH_NARROW_M]
+        for search_m in tries:
+            res = track_scan(self.mapper.static, self.mapper.state, frame.points, guess,
+                             dataclasses.replace(self.opts, search_m=search_m))
+            if res.ok:
+                break
         record = {"frame": frame.index, "ok": res.ok, "valid": round(res.valid_fraction, 4),
-                  "rms_cm": round(100 * res.rms_m, 2), "iterations": res.iterations,
+                  "rms_cm": round(100 * res.rms_m, 2), "iterations": res.iterations, "search_m": search_m,
                   "points": len(frame.points), "track_s": time.perf_counter() - t0}
         if not self.poses and not res.ok:
             raise self._first_frame_error(frame, res)
@@ -129,8 +135,9 @@ class LocalizeStep:
             f"{where}: the first frame could not be localised in the map {self.map_path}: "
             f"{100 * res.valid_fraction:.0f} % of its points inside the map (needs {100 * o.min_valid_fraction:.0f} %), "
             f"RMS SDF {100 * res.rms_m:.1f} cm (needs <= {100 * o.max_rms_m:.0f} cm). Either the sequence lies "
-            "outside the map, or the initial pose is off by more than about a metre or 10 degrees: pass --init "
-            "with the first scan's pose in the map's world frame (a KITTI line of 12 numbers, or a file)")
+            "outside the map, or the initial pose is off by more than about 2 m or 20 degrees: pass --init "
+            "with the first scan's LiDAR pose in the map's world frame (12 numbers as a line of jaxmap's "
+            "trajectory_kitti.txt, or a file)")
 
 
 def pose_errors(est: np.ndarray, gt: np.ndarray, ok: np.ndarray) -> dict:

@@ -177,22 +177,30 @@ def grid_search(sdf_fn, points_s, mask, R, t, search, opts: TrackOptions):
     return Rs[best], t + shifts[best]
 
 
+def staged_search(sdf_fn, points_s, mask, R, t, search, opts: TrackOptions):
+    """`grid_search` `search_stages` times, each between the grid points of the one before."""
+    shrink = jnp.array([1.0 / max(opts.search_steps - 1, 1), 1.0 / max(opts.search_yaw_steps - 1, 1)])
+    for _ in range(opts.search_stages):
+        R, t = grid_search(sdf_fn, points_s, mask, R, t, search, opts)
+        search = search * shrink
+    return R, t
+
+
 def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOptions(), search=None) -> Refined:
     """Pure LM refinement of T = (R0, t0) so that sdf_fn(R p + t) ~ 0 for the `mask`ed points.
 
     sdf_fn: map-frame points [M, 3] -> (sdf [M], valid [M] bool), differentiable in the points;
     points_s [M, 3] float32 sensor frame, in random order (the search uses the first rows); mask [M] bool
     (padding False); R0 [3, 3], t0 [3] map frame. search: the search's widths, [2] (half-width m, yaw
-    half-width rad; may be traced), or None: opts'; the search is compiled in when opts.search_m > 0."""
+    half-width rad; may be traced; a half-width of 0 skips the search), or None: opts'; the search is
+    compiled in when opts.search_m > 0."""
     points_s = jnp.asarray(points_s, jnp.float32)
     R0, t0 = jnp.asarray(R0, jnp.float32), jnp.asarray(t0, jnp.float32)
     if opts.search_m > 0:
         if search is None:
             search = jnp.array([opts.search_m, np.deg2rad(opts.search_yaw_deg)], jnp.float32)
-        shrink = jnp.array([1.0 / max(opts.search_steps - 1, 1), 1.0 / max(opts.search_yaw_steps - 1, 1)])
-        for _ in range(opts.search_stages):  # each stage searches between the grid points of the one before
-            R0, t0 = grid_search(sdf_fn, points_s, mask, R0, t0, search, opts)
-            search = search * shrink
+        R0, t0 = jax.lax.cond(search[0] > 0, functools.partial(staged_search, sdf_fn, points_s, mask, opts=opts),
+                              lambda R, t, s: (R, t), R0, t0, search)
     step = functools.partial(_lm_step, sdf_fn, points_s, mask, opts)
     init = (jnp.int32(0), R0, t0, jnp.float32(opts.damping), jnp.bool_(False))
     i, R, t, _, done = jax.lax.while_loop(lambda c: (c[0] < opts.iterations) & ~c[4], step, init)
@@ -207,7 +215,7 @@ def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOption
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search) -> Refined:
     """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)
-    (opts.search_m and search_yaw_deg only say whether to search: the widths are the traced `search`)."""
+    (the search's widths are the traced `search`; a half-width of 0 skips it)."""
     return refine_pose(lambda x: query(static, state, x), points_s, mask, R0, t0, opts, search)
 
 
@@ -230,8 +238,8 @@ def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOp
         return TrackResult(T_init.copy(), False, 0.0, float("inf"), 0)
     origin = origin_world(static, state)
     t0 = (T_init[:3, 3] - origin).astype(np.float32)
-    flags = dataclasses.replace(opts, search_m=1.0 if opts.search_m > 0 else 0.0, search_yaw_deg=0.0)  # one compile
-    widths = np.array([opts.search_m, np.deg2rad(opts.search_yaw_deg)], np.float32)              # for any widths
+    flags = dataclasses.replace(opts, search_m=1.0, search_yaw_deg=0.0)  # one compile for any widths, and none
+    widths = np.array([max(opts.search_m, 0.0), np.deg2rad(opts.search_yaw_deg)], np.float32)
     out = jax.device_get(track_program(static, flags, state, pts, mask, T_init[:3, :3].astype(np.float32), t0,
                                        widths))
     pose = np.eye(4)
