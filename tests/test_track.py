@@ -180,3 +180,23 @@ def test_localize_with_a_wrong_initial_pose_fails_with_a_clear_error(hall_run, t
     assert main(["localize", str(map_dir), "--data", str(seq), "--out", str(tmp_path / "x"), "--no-progress",
                  "--init", "1 2 3"]) == 2
     assert "12 numbers" in capsys.readouterr().err
+
+
+def test_read_init_takes_a_kitti_line_a_matrix_or_a_file(tmp_path):
+    from jaxmap.errors import DataError
+    from jaxmap.slam.localize import read_init
+
+    T = make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), 0.3), np.array([1.0, -2.0, 3.0]))
+    line = " ".join(repr(float(v)) for v in T[:3].ravel())
+    np.testing.assert_allclose(read_init(line), T, atol=1e-12)
+    np.testing.assert_allclose(read_init(",".join(repr(float(v)) for v in T.ravel())), T, atol=1e-12)
+    (tmp_path / "kitti.txt").write_text(line + "\n" + " ".join(["0"] * 12) + "\n")   # the first pose of a file
+    np.testing.assert_allclose(read_init(str(tmp_path / "kitti.txt")), T, atol=1e-12)
+    (tmp_path / "m.txt").write_text("\n".join(" ".join(repr(float(v)) for v in row) for row in T) + "\n")
+    np.testing.assert_allclose(read_init(str(tmp_path / "m.txt")), T, atol=1e-12)
+    with pytest.raises(DataError, match="12 numbers"):
+        read_init("1 0 0")
+    bad = T.copy()
+    bad[0, 0] = 2.0
+    with pytest.raises(DataError):
+        read_init(" ".join(repr(float(v)) for v in bad[:3].ravel()))

@@ -65,8 +65,8 @@ class TrackOptions:
     search_yaw_deg: float = 20.0       # ... each also turned about the vertical within +-search_yaw_deg
     search_yaw_steps: int = 9          # ... in this many steps
     search_points: int = 512           # ... each judged on this many of the points
-    search_stages: int = 2             # ... then again around the best, the grid shrunk to its spacing
     search_kernel_m: float = 0.3       # ... by the Geman-McClure cost at this scale
+    search_stages: int = 2             # ... then again around the best, the grid shrunk to its spacing
 
 
 class TrackResult(NamedTuple):
