@@ -461,7 +461,7 @@ def test_open_sequence_is_indexable(small_city):
     from jaxmap.io import open_sequence
 
     seq = open_sequence(small_city, every_frame=2)
-    assert seq[0].index == 0 and seq[-1].index == seq.frame(len(seq) - 1).index == 14
+    assert seq[0].index == 0 and seq[-1].index == seq.frame(len(seq) - 1).index == 62
     np.testing.assert_array_equal(seq[1].points, seq.frame(1).points)
     with pytest.raises(IndexError):
         seq[len(seq)]

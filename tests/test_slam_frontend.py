@@ -45,12 +45,13 @@ def noisy_room(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def noisy_city(tmp_path_factory):
-    """The small city (15 LiDAR scans ~4.7 m apart around a block) with 2 cm range noise."""
+    """The small city with 2 cm range noise, every 4th scan of its 10 Hz drive: 16 keyframes ~3.9 m and up
+    to 28 deg apart around a block (the front end's hard case; at 10 Hz, 0.97 m and 7 deg, it is easy)."""
     from jaxmap.synth.city import generate_city
 
     out = tmp_path_factory.mktemp("slam_city")
     generate_city(out, seed=0, small=True, noise_m=0.02)
-    seq = open_sequence(out)
+    seq = open_sequence(out, every_frame=4)
     return [f.points for f in seq], np.asarray(seq.poses)
 
 
@@ -243,7 +244,7 @@ def test_verify_rejects_false_loops_and_accepts_true_revisits(noisy_room, noisy_
     rng = np.random.default_rng(2)
     cases = [("room", noisy_room, OdometryConfig(), LoopConfig(), [(0, 15), (4, 19), (22, 7)], (ROOM_FRAMES - 1, 0),
               (0.05, 2.0), (0.02, 0.5)),
-             ("city", noisy_city, OdometryConfig.lidar(), LoopConfig.lidar(), [(0, 7), (3, 11), (9, 6)], (14, 0),
+             ("city", noisy_city, OdometryConfig.lidar(), LoopConfig.lidar(), [(0, 8), (3, 12), (10, 6)], (15, 0),
               (0.5, 2.0), (0.15, 0.5))]
     for name, (pts, gt), ocfg, lcfg, false_pairs, (i, j), drift, tol in cases:
         scans = {k: Scan(pts[k], ocfg) for k in {a for p in false_pairs for a in p} | {i, j}}
@@ -394,13 +395,15 @@ def test_frontend_sparse_keyframes_move_non_keyframes(noisy_room):
 
 
 def test_frontend_city_closes_loop(noisy_city):
-    """Small noisy city: 4.7 m between scans, 90-degree corners; the loop is closed and halves the error."""
+    """Small noisy city, every 4th scan: 3.9 m and up to 28 deg between keyframes; the loop is closed and
+    takes 40 % off the error."""
     pts, gt = noisy_city
-    fe = FrontEnd(FrontEndConfig.lidar(), initial_pose=gt[0])
+    # jaxmap's ICP (the LiDAR default, KISS-ICP, predicts each motion from the last one: not for keyframes)
+    fe = FrontEnd(FrontEndConfig.lidar(odometry=OdometryConfig.lidar(method="icp")), initial_pose=gt[0])
     results = [fe.add_frame(p) for p in pts]
     assert all(r.odometry_ok for r in results)
     ate_odo, ate_opt = ate(odometry_chain(fe), gt), ate(fe.trajectory(), gt)
-    assert ate_odo["max_m"] < 1.0                     # < 1.5 % of the 70 m loop
+    assert ate_odo["max_m"] < 1.0                     # < 1.6 % of the 62 m loop
     assert fe.loops and any(r.optimized for r in results)
     assert ate_opt["rmse_m"] < 0.6 * ate_odo["rmse_m"]
     assert all(set(r.timings) == {"odometry_s", "loop_s", "optimize_s"} for r in results)

@@ -190,13 +190,13 @@ def test_small_city_tsdf(request, tmp_path):
     from jaxmap.metrics import evaluate, observed_points_of
 
     out = tmp_path / "tsdf.ply"
-    info = tsdf_from_sequence(data, voxel_m=0.2, out_mesh=out, progress=False)
-    assert info["frames"] == 15 and info["faces"] > 10_000
-    obs, sensors = observed_points_of(data)
+    info = tsdf_from_sequence(data, voxel_m=0.2, out_mesh=out, every_frame=4, progress=False)
+    assert info["frames"] == 16 and info["faces"] > 10_000
+    obs, sensors = observed_points_of(data, every_frame=4)
     dense_gt = sample_mesh(os.path.join(data, "gt_mesh.ply"), 1_000_000, seed=1)
     m = evaluate(sample_mesh(out, 200_000), dense_gt, observed_points=obs, sensor_positions=sensors,
                  eval_radius_m=20.0)
     assert m["accuracy_cm"] < 5.0, m  # 1/4 voxel; measured ~3.8 cm
     assert m["precision"] > 90.0, m
-    mf = evaluate_mesh_file(out, data, eval_radius_m=20.0, n_samples=200_000)
+    mf = evaluate_mesh_file(out, data, eval_radius_m=20.0, n_samples=200_000, every_frame=4)
     assert mf["n_gt"] > 10_000 and mf["completion_ratio"] > 20.0, mf

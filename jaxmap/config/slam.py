@@ -18,17 +18,27 @@ class OdometryConfig:
     3 cm / 6 cm gives 0.4 cm ATE at ~0.2 s per frame (2 CPU cores); 5 cm / 10 cm 0.8 cm at ~0.1 s;
     a wider correspondence distance (3 voxels) is faster to converge but biased: 2x the drift.
 
-    For a street LiDAR (the city, 50 m range, cm noise) use `OdometryConfig.lidar()`: voxel 0.3 m,
-    correspondences within 0.6 m (1.5 m in the coarse stage), fitness >= 0.5, RMSE <= 0.4 m (the
-    point-to-point RMSE of a correct match of sparse beams is already ~0.25 m, so fitness is the real
-    test). On the small city (4.7 m between scans, 2 cm noise): 8.5 cm ATE over the 70 m loop; 0.2 m
-    voxels give 5 cm at twice the time; 0.2-0.5 m voxels are the sensible range for 32-64 beams.
+    For a street LiDAR (the city, 50 m range, cm noise) use `OdometryConfig.lidar()`: KISS-ICP (method
+    kiss_icp), and for ICP (and the scans kept for loop closure) voxel 0.3 m, correspondences within
+    0.6 m (1.5 m in the coarse stage), fitness >= 0.5, RMSE <= 0.4 m (the point-to-point RMSE of a
+    correct match of sparse beams is already ~0.25 m, so fitness is the real test). Odometry ATE on the
+    10 Hz cities with 2 cm noise (`jaxmap bench slam --only odometry`): KISS-ICP 2.8 cm, ICP 14.7 cm
+    (city, 130 frames, 125 m); KISS-ICP 9.6 cm, ICP 9.1 cm (small city, 64 frames, 62 m). ICP's 0.3 m
+    voxels are the sensible middle of 0.2-0.5 m for 32-64 beams (0.2 m: twice the time).
 
-    method:         "icp": this module's frame-to-frame point-to-plane ICP (open3d), the default; "kiss_icp":
-                    KISS-ICP (Vizzo et al., RA-L 2023; `pip install kiss-icp`), point-to-point ICP against a
-                    voxel-hashed local map with an adaptive threshold (`jaxmap.slam.kiss`). Both give the
-                    same OdomStep; the scans kept for loop closure are prepared with the fields below either way
+    method:         "icp": this module's frame-to-frame point-to-plane ICP (open3d), the default (the depth
+                    camera's); "kiss_icp": KISS-ICP (Vizzo et al., RA-L 2023; `pip install kiss-icp`),
+                    point-to-point ICP against a voxel-hashed local map with an adaptive threshold
+                    (`jaxmap.slam.kiss`), the LiDAR default (`lidar()`). Both give the same OdomStep; the
+                    scans kept for loop closure are prepared with the fields below either way
     kiss_voxel_m:   kiss_icp only: voxel size of its local map (m); 0 = max_range_m / 100 as KISS-ICP does
+    kiss_initial_threshold_m: kiss_icp only: KISS-ICP's adaptive threshold (its kernel; correspondences
+                    within 3x) until it has measured how far its predictions miss. jaxmap seeds the first
+                    step with its own ICP (`jaxmap.slam.kiss`), so the first prediction is already close:
+                    0.3 m (ATE 2.8 / 9.6 cm on the 10 Hz city / small city) instead of KISS-ICP's 2.0 m,
+                    made for a first step from no motion (15.5 / 39 cm: the wide kernel keeps the pull of
+                    the road's beam rings towards no motion); 0.5 m gave 4.4 / 11.7 cm. Without a seed
+                    (its ICP fails) KISS-ICP's 2.0 m is used
     voxel_m:        downsampling voxel (m) of the scans fed to ICP (and to the loop verification)
     max_corr_m:     ICP correspondence distance of the fine stage (m); about 2 voxels
     coarse_factor:  a first ICP stage runs with voxel and max_corr scaled by this (1 = single stage);  # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
@@ -45,6 +55,7 @@ class OdometryConfig:
     """
     method: str = "icp"                 # "icp" (open3d point-to-plane, frame to frame) or "kiss_icp" (KISS-ICP, frame to local map)
     kiss_voxel_m: float = 0.0           # kiss_icp: voxel (m) of its local map; 0 = max_range_m / 100 (KISS-ICP's default)
+    kiss_initial_threshold_m: float = 0.3  # kiss_icp: adaptive threshold (m) before any measured deviation (KISS-ICP: 2.0)
     voxel_m: float = 0.03               # downsampling voxel (m) of the scans fed to ICP
     max_corr_m: float = 0.06            # ICP correspondence distance of the fine stage (m); about 2 voxels
     coarse_factor: float = 2.5          # a first ICP stage runs with voxel and max_corr scaled by this (1 = one stage)
@@ -60,8 +71,8 @@ class OdometryConfig:
     @classmethod
     def lidar(cls, **overrides) -> "OdometryConfig":
         """Settings for a street LiDAR (see the class docstring); keyword arguments override them."""
-        base = dict(voxel_m=0.3, max_corr_m=0.6, coarse_factor=2.5, retry_below_fitness=0.8, min_fitness=0.5,
-                    max_rmse_m=0.4, normals_k=15, min_range_m=2.0, max_range_m=50.0)
+        base = dict(method="kiss_icp", voxel_m=0.3, max_corr_m=0.6, coarse_factor=2.5, retry_below_fitness=0.8,
+                    min_fitness=0.5, max_rmse_m=0.4, normals_k=15, min_range_m=2.0, max_range_m=50.0)
         base.update(overrides)
         return cls(**base)
 
@@ -120,7 +131,7 @@ class FrontEndConfig:
     odometry, loops:            see OdometryConfig and LoopConfig
     keyframe_every:             a keyframe needs at least this many frames since the last keyframe ...
     keyframe_min_translation_m, keyframe_min_rotation_deg: ... and this much motion since it (either one;
-                                both 0 = every `keyframe_every`-th frame is a keyframe)
+                                0 = that one unused; both 0 = every `keyframe_every`-th frame is a keyframe)
     loop_cooldown:              after an accepted loop, this many keyframes skip the loop search
     graph_max_corr_m:           pose-graph line-process distance (see PoseGraph.optimize): a loop edge that
                                 disagrees with the odometry by much more than this is pruned. None =
@@ -136,7 +147,7 @@ class FrontEndConfig:
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     loops: LoopConfig = field(default_factory=LoopConfig)
     keyframe_every: int = 1             # a keyframe needs at least this many frames since the last keyframe ...
-    keyframe_min_translation_m: float = 0.0  # ... and this much translation (or the rotation below; both 0 = none)
+    keyframe_min_translation_m: float = 0.0  # ... and this much translation (or the rotation below; 0 = unused, both 0 = none)
     keyframe_min_rotation_deg: float = 0.0  # ... or this much rotation since it
     loop_cooldown: int = 0              # after an accepted loop, this many keyframes skip the loop search
     graph_max_corr_m: float | None = None  # pose-graph line-process distance (m); null = loops.max_correction_m
@@ -146,8 +157,12 @@ class FrontEndConfig:
 
     @classmethod
     def lidar(cls, **overrides) -> "FrontEndConfig":
-        """Street-LiDAR settings (OdometryConfig.lidar(), LoopConfig.lidar()); keywords override fields."""
-        base = dict(odometry=OdometryConfig.lidar(), loops=LoopConfig.lidar())
+        """Street-LiDAR settings (OdometryConfig.lidar(), LoopConfig.lidar(), a keyframe every 3.5 m); keywords
+        override fields. At 10 Hz a car's scans are ~1 m apart: a keyframe at each of them would put the
+        loop search's min_gap (8 keyframes) 8 m back, within its 10 m radius, and "close a loop" with the
+        scan 8 back at every frame (a pose-graph optimisation and a remap each); every 3.5 m keeps ~16
+        keyframes on the small city's 62 m loop, as its 15 frames 4.7 m apart were before issue 25."""
+        base = dict(odometry=OdometryConfig.lidar(), loops=LoopConfig.lidar(), keyframe_min_translation_m=3.5)
         base.update(overrides)
         return cls(**base)
 

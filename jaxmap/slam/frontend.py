@@ -109,8 +109,9 @@ class FrontEnd:
             return False
         if cfg.keyframe_min_translation_m <= 0 and cfg.keyframe_min_rotation_deg <= 0:
             return True
-        ang, dist = pose_change(self.graph.poses[-1], pose)
-        return dist >= cfg.keyframe_min_translation_m or np.degrees(ang) >= cfg.keyframe_min_rotation_deg
+        ang, dist = pose_change(self.graph.poses[-1], pose)  # (a threshold of 0 is not used: 0 would pass any motion)
+        moved = cfg.keyframe_min_translation_m > 0 and dist >= cfg.keyframe_min_translation_m
+        return moved or (cfg.keyframe_min_rotation_deg > 0 and np.degrees(ang) >= cfg.keyframe_min_rotation_deg)
 
     # ---------------------------------------------------------------------------------------------
     def add_frame(self, points_s: np.ndarray) -> FrameResult:

@@ -10,8 +10,12 @@ ground truth.
 A vehicle drives one closed loop around the central block (right lane, counter-clockwise) with a
 LiDAR at 1.73 m. With long=True the city is a larger grid (6 N-S x 5 E-W streets, 256 m x 200 m) and the
 vehicle drives a ~1.1 km serpentine through it instead (right lane, every E-W street once, joined at
-alternate ends; not closed), ~1.1 m per frame, so the area seen grows about linearly with the frames
-(long-drive memory benchmarks). Written in the KITTI odometry layout, with the SHINE/N3 pose convention:
+alternate ends; not closed), ~1.09 m per frame, so the area seen grows about linearly with the frames
+(long-drive memory benchmarks). Every preset drives like a car's LiDAR at 10 Hz (`jaxmap.synth.drive`):
+frames ~1 m apart at a constant speed, turns of at least 8 m radius, at most ~7.3 deg of heading change
+between two scans (meta.json "trajectory": "motion" holds the figures of the frames written; fewer
+--frames than the preset's spread over a loop turn faster). Written in the KITTI odometry layout, with
+the SHINE/N3 pose convention:
 
     velodyne/000000.bin ...  float32 x,y,z,intensity in the LiDAR frame (x forward, y left, z up)
     calib.txt                "Tr:" = T_cam_velo (KITTI's typical velo->cam matrix, orthonormalised)
@@ -61,6 +65,7 @@ import numpy as np
 from jaxmap.io.kitti import camera_poses_from_lidar, write_calib, write_poses
 from jaxmap.io.pointcloud import write_mesh_ply, write_points_ply, write_scan_bin
 from jaxmap.synth import common as C
+from jaxmap.synth.drive import drive_stats
 from jaxmap.synth import suburb
 from jaxmap.synth import traffic as traffic_mod
 from jaxmap.synth.streets import CURB_H, TILE, Scene, add_pole, add_tree, car_mesh, inside_convex
@@ -111,18 +116,21 @@ class CityPreset:
                 tuple(self.streets_y) or (-self.street_y, self.street_y))
 
 
+# The drives are a car's at 10 Hz (`jaxmap.synth.drive`): frames ~1 m apart (~10 m/s) at a constant speed, and
+# corner radii of 8-8.5 m, so the heading turns at most 7.3 deg between two scans (the loop presets: <= 7).
 DEFAULT = CityPreset(half_extent=50.0, street_x=20.0, street_y=14.0, road_width=8.0, sidewalk=4.0,
-                     lane_offset=0.5, corner_radius=5.0, frames=130, beams=64, azimuth_steps=1024,
+                     lane_offset=0.5, corner_radius=8.5, frames=130, beams=64, azimuth_steps=1024,
                      gt_density=1000.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8)
+# The small loop (~62 m, mostly corner: the sides' straights are 5 m and 1 m long) in 64 frames ~0.97 m apart.
 SMALL = CityPreset(half_extent=20.0, street_x=10.0, street_y=8.0, road_width=7.0, sidewalk=2.0,
-                   lane_offset=0.5, corner_radius=3.0, frames=15, beams=32, azimuth_steps=512,
+                   lane_offset=0.5, corner_radius=8.0, frames=64, beams=32, azimuth_steps=512,
                    gt_density=1000.0, tree_from_curb=0.9, ped_from_curb=1.5, pedestrians=4)
 # The long drive: the DEFAULT's streets, sidewalks and sensor on a 7 x 6-block grid (N-S streets 40 m apart,
-# E-W streets 36 m apart, outer blocks 24 m deep); the route (`long_route`) is ~1127 m and `frames` puts
-# the frames ~1.1 m apart (street_x / street_y, the loop presets' streets, are unused). Parks in a few
+# E-W streets 36 m apart, outer blocks 24 m deep); the route (`long_route`) is ~1115 m and `frames` puts
+# the frames ~1.09 m apart (street_x / street_y, the loop presets' streets, are unused). Parks in a few
 # scattered blocks, so fences and railings keep showing up along the drive.
 LONG = CityPreset(half_extent=128.0, street_x=0.0, street_y=0.0, road_width=8.0, sidewalk=4.0,
-                  lane_offset=0.5, corner_radius=5.0, frames=1025, beams=64, azimuth_steps=1024,
+                  lane_offset=0.5, corner_radius=8.5, frames=1025, beams=64, azimuth_steps=1024,
                   gt_density=1000.0, tree_from_curb=1.3, ped_from_curb=2.4, pedestrians=8,
                   streets_x=(-100.0, -60.0, -20.0, 20.0, 60.0, 100.0), streets_y=(-72.0, -36.0, 0.0, 36.0, 72.0),
                   half_extent_y=100.0, parks=((1, 1), (4, 1), (2, 3), (5, 2), (3, 4)))
@@ -336,7 +344,7 @@ def _snake_waypoints(P: CityPreset) -> np.ndarray:
 
 
 def long_route(P: CityPreset | None = None) -> RoutePath:
-    """The long preset's drive (a RoutePath over `_snake_waypoints`), ~1127 m."""
+    """The long preset's drive (a RoutePath over `_snake_waypoints`), ~1115 m."""
     P = P or LONG
     return RoutePath(_snake_waypoints(P), P.lane_offset, P.corner_radius)
 
@@ -344,7 +352,7 @@ def long_route(P: CityPreset | None = None) -> RoutePath:
 def long_drive(n_frames: int | None = None, P: CityPreset | None = None):
     """Frames of the long drive without building the city: (route, T_world_lidar [n,4,4], spacing (m)).
 
-    The preset's `frames` span the whole route (spacing = length / (frames - 1), ~1.1 m). Fewer frames
+    The preset's `frames` span the whole route (spacing = length / (frames - 1), ~1.09 m). Fewer frames
     keep that spacing and stop early (the first n frames of the same drive), more are spread over the
     whole route at a smaller spacing."""
     P = P or LONG
@@ -357,6 +365,29 @@ def long_drive(n_frames: int | None = None, P: CityPreset | None = None):
 def lidar_poses(path: LoopPath, n_frames: int) -> np.ndarray:
     """[n,4,4] T_world_lidar evenly spaced over one loop (frame n would coincide with frame 0)."""
     return _poses_at(path, [i * path.length / n_frames for i in range(n_frames)])
+
+
+def preset(small: bool = False, long: bool = False, layout: str = "grid"):
+    """The preset generate_city uses: a CityPreset (grid: DEFAULT / SMALL / LONG) or a suburb.SuburbPreset."""
+    if layout == "suburb":
+        return suburb.SMALL if small else suburb.DEFAULT
+    return LONG if long else SMALL if small else DEFAULT
+
+
+def preset_drive(P, n_frames: int | None = None, layout: str = "grid", long: bool = False):
+    """The sensor's drive of a preset without building its scene: (path, T_world_lidar [n,4,4], spacing (m)).
+
+    P: a CityPreset or SuburbPreset (`preset`); n_frames: default P.frames. The loops (grid, suburb) spread
+    the frames evenly over one loop; long: `long_drive` (the city depends on the whole route, never on
+    n_frames: a short run sees the same scene)."""
+    n_frames = int(n_frames or P.frames)
+    if long:
+        return long_drive(n_frames, P)
+    if layout == "suburb":
+        path = suburb.ring_path(P)
+    else:
+        path = LoopPath(P.street_x + P.lane_offset, P.street_y + P.lane_offset, P.corner_radius)
+    return path, lidar_poses(path, n_frames), path.length / n_frames
 
 
 def _poses_at(path, arclengths) -> np.ndarray:
@@ -498,6 +529,31 @@ def _street_edges(x0, x1, y0, y1, sides):
     return edges
 
 
+HALF_CAR = 0.9  # the moving cars (traffic) are <= 1.8 m wide
+
+
+def traffic_lanes(P: CityPreset) -> tuple:
+    """The grid's traffic lane centres as offsets right of the drive (m): (same direction, opposite). The
+    parked cars' inner edge lies 1.1 + 0.925 m from the curb; the lanes keep 2.5 cm from it."""
+    w = P.road_width / 2
+    b = w - 1.1 - 0.925 - 0.025
+    return b - HALF_CAR - P.lane_offset, -(b - HALF_CAR) - P.lane_offset
+
+
+def _lane_samples(P: CityPreset, path, step: float):
+    """Both traffic lanes every ~step metres: (centres [n,2], the largest moving car there [n,4,2]: 4.4 m x
+    1.8 m, grown as the traffic planner grows it, by 0.3 m and 0.04 m)."""
+    n = int(np.ceil(path.length / step))
+    xy, yaw = [], []
+    for d in traffic_lanes(P):
+        for k in range(n + 1):
+            x, y, a = path.at(k * path.length / n)
+            xy.append((x + d * np.sin(a), y - d * np.cos(a)))
+            yaw.append(a)
+    xy = np.array(xy)
+    return xy, traffic_mod.rect_corners(xy, np.array(yaw), (4.4 + 0.3, 2 * HALF_CAR + 0.04))
+
+
 def build_city(P: CityPreset, seed: int, path):
     """The static scene: (vertices [V,3], faces [F,3], object id per face [F], Scene).
 
@@ -506,12 +562,22 @@ def build_city(P: CityPreset, seed: int, path):
     scene = Scene()
     gid = scene.add(_ground(P), "ground")
     traj = path.samples(0.25)
+    lanes = _lane_samples(P, path, 0.25)
     S = P.sidewalk
 
     def clear_of_path(poly, margin):
         # reject objects whose footprint (expanded by margin) contains a trajectory sample
         lo, hi = poly.min(0) - margin, poly.max(0) + margin
         return not np.any(np.all((traj >= lo) & (traj <= hi), axis=1))
+
+    def clear_of_lanes(poly):
+        # ... or overlaps the largest moving car anywhere along a traffic lane (the corners cut across the
+        # intersections; on the straights the parked cars clear the lanes by 0.5 cm). Parked cars lie
+        # along the streets: their footprint is the vertices' axis-aligned box.
+        lo, hi = poly.min(0), poly.max(0)
+        near = np.linalg.norm(lanes[0] - (lo + hi) / 2, axis=1) < 6.0
+        box = np.array([lo, (hi[0], lo[1]), hi, (lo[0], hi[1])])
+        return not traffic_mod.polys_overlap(lanes[1][near], box).any()
 
     for (x0, x1, y0, y1, sides, central) in _blocks(P):  # central: a block with park lots
         # ---- lots and buildings
@@ -558,7 +624,7 @@ def build_city(P: CityPreset, seed: int, path):
                 if rng.random() < 0.7:
                     mesh, L, W = car_mesh(p0 + (s + 2.4) * u - nrm * 1.1, float(np.arctan2(u[1], u[0]))
                                       + (np.pi if rng.random() < 0.5 else 0.0), rng)
-                    if clear_of_path(mesh[0][:, :2], 0.6):
+                    if clear_of_path(mesh[0][:, :2], 0.6) and clear_of_lanes(mesh[0][:, :2]):
                         scene.add(mesh, "car")
                     s += 4.8 + rng.uniform(1.0, 3.0)
                 else:
@@ -671,12 +737,12 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
-    small: 40 m x 40 m scene, 15 frames, 32 x 512 beams (seconds); default 100 m x 100 m, 130 frames
-           ~1 m apart, 64 x 1024 beams.
-    long: 256 m x 200 m city, a 1127 m serpentine drive (not closed), 1025 frames 1.1 m apart, the
+    small: 40 m x 40 m scene, 64 frames 0.97 m apart, 32 x 512 beams (seconds); default 100 m x 100 m,
+           130 frames 0.96 m apart, 64 x 1024 beams.
+    long: 256 m x 200 m city, a 1115 m serpentine drive (not closed), 1025 frames 1.09 m apart, the
           default's 64 x 1024 beams and GT density (1 GB of scans; see `long_drive`).
     n_frames: frames evenly spaced over the one closed loop (default per preset); with long, the first
-              n_frames of the drive at the preset's 1.1 m (spread over the whole route if more).
+              n_frames of the drive at the preset's 1.09 m (spread over the whole route if more).
     noise_m: std of Gaussian range noise (m).  beams / azimuth_steps: override the LiDAR resolution.
     pedestrians: add boxes walking around the central block (long: around the first block on the left
                  of the drive) (in the scans, not in the ground truth).
@@ -709,9 +775,7 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     if traffic and long:
         raise ValueError("traffic is not available with long (the grid and suburb loops only)")
     modes = realistic_modes(realistic)
-    P = LONG if long else SMALL if small else DEFAULT
-    if layout == "suburb":
-        P = suburb.SMALL if small else suburb.DEFAULT
+    P = preset(small, long, layout)
     n_frames = int(n_frames or P.frames)
     beams = int(beams or P.beams)
     azimuth_steps = int(azimuth_steps or P.azimuth_steps)
@@ -720,17 +784,11 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     out_dir = os.fspath(out_dir)
     scan_dir = C.prepare_out_dir(out_dir, "velodyne", ".bin")
 
+    path, T_wl, spacing = preset_drive(P, n_frames, layout=layout, long=long)
     ped_block = None
-    if layout == "suburb":
-        path = suburb.ring_path(P)
-    elif long:
-        # the city depends on the whole route, never on n_frames: a short run sees the same scene
-        path, T_wl, spacing = long_drive(n_frames, P)
+    if long:
         xb, yb = _intervals(P)
         ped_block = (xb[2], xb[3], yb[2], yb[3])  # left of the first leg, passed again on the second run
-    else:
-        off = P.lane_offset
-        path = LoopPath(P.street_x + off, P.street_y + off, P.corner_radius)
     V, F, obj, scene = suburb.build_suburb(P, seed, path) if layout == "suburb" else build_city(P, seed, path)
     if lane_shift_m or start_m:
         if long or layout != "grid":
@@ -738,7 +796,6 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         if P.corner_radius + lane_shift_m <= 0.5:
             raise ValueError(f"lane_shift_m {lane_shift_m:g} leaves no corner (radius {P.corner_radius:g} m)")
         path = LoopPath(path.hx + lane_shift_m, path.hy + lane_shift_m, P.corner_radius + lane_shift_m)
-    if not long:
         T_wl = _poses_at(path, [start_m + i * path.length / n_frames for i in range(n_frames)])
         spacing = path.length / n_frames
     Tr = kitti_tr()
@@ -843,7 +900,7 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
                         "waypoints": C.rounded(_snake_waypoints(P), 3)} if long else
                        {"loop_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
                         "closed_loop": True, **({"lane_shift_m": float(lane_shift_m), "start_m": float(start_m)}
-                                                if lane_shift_m or start_m else {})}),
+                                                if lane_shift_m or start_m else {})}) | {"motion": drive_stats(T_wl, closed=not long)},
         "calib_Tr": C.rounded(Tr[:3].reshape(-1), 12),
         "objects": kinds, "pedestrians": (P.pedestrians if pedestrians else 0),
         "gt": {"mesh_triangles": int(len(F)), "points": int(len(gt_pts)),
@@ -871,7 +928,7 @@ def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int,
     and sidewalks)."""
     parked = traffic_mod.footprints_of(scene, "car")
     ego_s = np.arange(n_frames) * spacing
-    half_car = 0.9  # the moving cars are <= 1.8 m wide
+    half_car = HALF_CAR
     if layout == "suburb":
         w = P.road_width / 2
         b = w - 1.1 - 0.925 - 0.025  # the parked cars' inner edge (outer curb), a margin
@@ -880,8 +937,7 @@ def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int,
         curb_z = lambda xy: np.full(len(xy), CURB_H)  # noqa: E731
     else:
         w = P.road_width / 2
-        b = w - 1.1 - 0.925 - 0.025  # parked cars on both curbs
-        lane_same, lane_opp = b - half_car, -(b - half_car)
+        lane_same, lane_opp = (d + P.lane_offset for d in traffic_lanes(P))  # (parked cars on both curbs)
         xb, yb = _intervals(P)
         d = P.ped_from_curb
         loops = [LoopPath(xb[3] - d, yb[3] - d, 0.5)]  # (corners rounder than the walkers' 0.35 m offsets)

@@ -37,7 +37,7 @@ DEFAULT = SuburbPreset(r0=21.0, road_width=8.0, lane_offset=0.5, outer=42.0, hou
                        house_spacing=15.0, frames=130, beams=64, azimuth_steps=1024, gt_density=1000.0,
                        pedestrians=8)
 SMALL = SuburbPreset(r0=11.0, road_width=7.0, lane_offset=0.5, outer=16.0, house_rows=(4.5,),
-                     house_spacing=14.0, frames=15, beams=32, azimuth_steps=512, gt_density=1000.0,
+                     house_spacing=14.0, frames=72, beams=32, azimuth_steps=512, gt_density=1000.0,
                      pedestrians=4)
 
 
