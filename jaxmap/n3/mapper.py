@@ -99,6 +99,15 @@ class N3Mapper:
         self.timings.append(info)
         return info
 
+    def reset(self) -> None:
+        """Forget the map: an empty state of the current capacities (so the compiled frame program is
+        reused), frame 0, the origin set again by the next frame. The timings are kept."""
+        caps = core.Capacities.of(self.state)
+        self.state = None  # the old arrays go before the new ones are allocated
+        self.state = core.init_state(self.static, self.cfg, caps)
+        self.frames = 0
+        self._origin = core.origin_world(self.static, self.state)
+
     def frames_held(self, min_frames: int = 10) -> float:
         """Median over the window's voxels observed by >= min_frames frames (since they entered the
         window) of the fraction of those frames whose pairs the voxel's block still holds (1.0: every
