@@ -1,0 +1,187 @@
+"""Tracking against the implicit map (PIN-SLAM's idea, in JAX): refine a scan's pose by minimising the
+SDF of its points in an N3 map over SE(3), starting from a guess (odometry, constant velocity).
+
+    res = track_scan(mapper.static, mapper.state, points_s, T_guess)   # TrackResult
+    if res.ok: T = res.pose
+
+The solve is Levenberg-Marquardt on a 6-vector (omega, v), a left perturbation in the map frame with
+the rotation about the sensor: R <- exp(omega) R, t <- t + v, so x_i = R p_i + t moves by
+omega x (R p_i) + v. Residual r_i = sdf(x_i) for the points inside allocated voxels (the others weigh
+0); its Jacobian is grad sdf(x_i) chained with that point Jacobian, [(R p_i) x g_i, g_i], the gradient
+by one reverse pass through the field (`jaxmap.n3.loss.sdf_and_grad`). Geman-McClure IRLS weights
+w = (k^2 / (k^2 + r^2))^2, the kernel scale k annealed from `kernel_start_m` down to `kernel_m` over the
+first iterations (wide enough at first to pull a pose 0.5 m off in, tight at the end so that what the
+map does not hold - cars that moved, new facades - does not bias the pose). A step is kept when it
+lowers the robust cost (points outside the map count as the kernel's ceiling, so a step cannot win
+by pushing points out of the map); else the damping grows. All iterations run in one jitted program
+(`lax.while_loop`, stopping early on a small step) on a fixed number of points (`max_points`: a
+scan is subsampled or padded to it), so the program compiles once per map shape.
+
+`refine_pose` is the pure core, for any SDF (`sdf_fn(x [M, 3]) -> (sdf [M], valid [M])`), usable in
+other jitted code; `track_scan` is the host wrapper for an N3 map: world <-> map frame in float64
+(the map frame's origin is subtracted on the host, so float32 stays precise far from the world
+origin), subsampling, and the verdict `ok`.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmap.geometry import orthonormalize
+from jaxmap.n3.query import query
+from jaxmap.n3.state import N3State, N3Static, origin_world
+
+
+@dataclass(frozen=True)
+class TrackOptions:
+    """How `track_scan` solves and judges (hashable: a static argument of the program)."""
+
+    iterations: int = 15               # at most this many LM iterations (fewer once a step is tiny)
+    kernel_m: float = 0.1              # Geman-McClure scale k at the end, metres
+    kernel_start_m: float = 0.8        # ... at the first iteration, shrunk by `kernel_decay` per iteration
+    kernel_decay: float = 0.6
+    max_points: int = 4096             # scan points used (a random subset, or padding): one compile
+    damping: float = 1e-3              # initial LM damping (times diag(H))
+    min_valid_fraction: float = 0.5    # ok needs at least this fraction of the points inside the map
+    max_rms_m: float = 0.12            # ... and their RMS SDF (each clipped at `rms_clip_m`) at most this
+    rms_clip_m: float = 1.0
+    step_tol_m: float = 1e-3           # converged: a kept step below this (translation, and rotation x 10 m)
+    seed: int = 0                      # of the subsample
+
+
+class TrackResult(NamedTuple):
+    pose: np.ndarray        # [4, 4] float64 T_world_sensor, refined (the guess when nothing could be done)
+    ok: bool                # enough points in the map, small RMS, converged
+    valid_fraction: float   # of the used points, inside allocated voxels at the final pose
+    rms_m: float            # RMS SDF of those points at the final pose (each clipped at rms_clip_m)
+    iterations: int         # LM iterations run
+
+
+class Refined(NamedTuple):
+    """What `refine_pose` returns (device arrays)."""
+
+    R: jax.Array            # [3, 3] map-frame rotation
+    t: jax.Array            # [3] map-frame translation
+    valid_fraction: jax.Array
+    rms_m: jax.Array
+    iterations: jax.Array
+    converged: jax.Array    # the last kept step was below step_tol_m
+
+
+def so3_exp(w):
+    """Rotation matrix [3, 3] of an axis-angle vector w [3] (Rodrigues, safe at 0)."""
+    th2 = jnp.dot(w, w)
+    small = th2 < 1e-8
+    th = jnp.sqrt(jnp.where(small, 1.0, th2))
+    a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
+    b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
+    K = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], w.dtype)
+    return jnp.eye(3, dtype=w.dtype) + a * K + b * (K @ K)
+
+
+def gm_weight(r, k):
+    """Geman-McClure IRLS weight of residuals r at scale k."""
+    k2 = k * k
+    return (k2 / (k2 + r * r)) ** 2
+
+
+def gm_cost(r, valid, mask, k):
+    """Mean Geman-McClure cost rho(r) = (r^2 / 2) k^2 / (k^2 + r^2) over `mask`; a point outside the map
+    (not `valid`) costs the ceiling k^2 / 2."""
+    k2 = k * k
+    rho = jnp.where(valid, 0.5 * r * r * k2 / (k2 + r * r), 0.5 * k2)
+    return jnp.sum(jnp.where(mask, rho, 0.0)) / jnp.maximum(jnp.sum(mask), 1)
+
+
+def _residuals(sdf_fn, points, R, t, grad: bool):
+    """(r [M], valid [M], d r / d x [M, 3] or None) at x = R p + t."""
+    x = points @ R.T + t
+    if not grad:
+        r, valid = sdf_fn(x)
+        return jnp.where(jnp.isfinite(r), r, 0.0), valid & jnp.isfinite(r), None
+    r, vjp, valid = jax.vjp(sdf_fn, x, has_aux=True)
+    (g,) = vjp(jnp.ones_like(r))
+    finite = jnp.isfinite(r) & jnp.all(jnp.isfinite(g), axis=1)   # a NaN gradient would poison H
+    return jnp.where(finite, r, 0.0), valid & finite, jnp.where(finite[:, None], g, 0.0)
+
+
+def _lm_step(sdf_fn, points, mask, opts: TrackOptions, carry):
+    """One LM iteration: carry (i, R, t, lam, converged) -> the next."""
+    i, R, t, lam, _ = carry
+    k = jnp.maximum(opts.kernel_m, opts.kernel_start_m * opts.kernel_decay ** i.astype(jnp.float32))
+    r, valid, g = _residuals(sdf_fn, points, R, t, grad=True)
+    w = jnp.where(mask & valid, gm_weight(r, k), 0.0)
+    J = jnp.concatenate([jnp.cross(points @ R.T, g), g], axis=1)          # [M, 6]: d r / d (omega, v)
+    H = (J * w[:, None]).T @ J
+    b = J.T @ (w * r)
+    A = H + lam * (jnp.diag(jnp.diag(H)) + 1e-6 * jnp.eye(6))
+    delta = -jnp.linalg.solve(A, b)
+    delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
+    R2, t2 = so3_exp(delta[:3]) @ R, t + delta[3:]
+    r2, valid2, _ = _residuals(sdf_fn, points, R2, t2, grad=False)
+    better = gm_cost(r2, valid2, mask, k) <= gm_cost(r, valid, mask, k)
+    small = jnp.maximum(jnp.linalg.norm(delta[3:]), 10.0 * jnp.linalg.norm(delta[:3])) < opts.step_tol_m
+    R, t = jnp.where(better, R2, R), jnp.where(better, t2, t)
+    lam = jnp.where(better, jnp.maximum(lam / 3.0, 1e-7), lam * 4.0)
+    # converged: a tiny kept step once the kernel is at its final scale, or damping so large nothing moves
+    done = (better & small & (k <= opts.kernel_m * 1.0001)) | (lam > 1e6)
+    return i + 1, R, t, lam, done
+
+
+def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOptions()) -> Refined:
+    """Pure LM refinement of T = (R0, t0) so that sdf_fn(R p + t) ~ 0 for the `mask`ed points.
+
+    sdf_fn: map-frame points [M, 3] -> (sdf [M], valid [M] bool), differentiable in the points;
+    points_s [M, 3] float32 sensor frame; mask [M] bool (padding False); R0 [3, 3], t0 [3] map frame."""
+    points_s = jnp.asarray(points_s, jnp.float32)
+    R0, t0 = jnp.asarray(R0, jnp.float32), jnp.asarray(t0, jnp.float32)
+    step = functools.partial(_lm_step, sdf_fn, points_s, mask, opts)
+    init = (jnp.int32(0), R0, t0, jnp.float32(opts.damping), jnp.bool_(False))
+    i, R, t, _, done = jax.lax.while_loop(lambda c: (c[0] < opts.iterations) & ~c[4], step, init)
+    r, valid, _ = _residuals(sdf_fn, points_s, R, t, grad=False)
+    inside = mask & valid
+    n_in = jnp.sum(inside)
+    rc = jnp.minimum(jnp.abs(r), opts.rms_clip_m)
+    rms = jnp.sqrt(jnp.sum(jnp.where(inside, rc * rc, 0.0)) / jnp.maximum(n_in, 1))
+    return Refined(R, t, n_in / jnp.maximum(jnp.sum(mask), 1), jnp.where(n_in > 0, rms, jnp.inf), i, done)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0) -> Refined:
+    """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)."""
+    return refine_pose(lambda x: query(static, state, x), points_s, mask, R0, t0, opts)
+
+
+def subsample(points_s, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(points [n, 3] float32, mask [n] bool): a random subset of n rows of points_s [N, 3], or all of
+    them padded with zero rows (mask False)."""
+    pts = np.asarray(points_s, np.float32).reshape(-1, 3)
+    if len(pts) > n:
+        pts = pts[np.sort(np.random.default_rng(seed).choice(len(pts), n, replace=False))]
+    out = np.zeros((n, 3), np.float32)
+    out[:len(pts)] = pts
+    return out, np.arange(n) < len(pts)
+
+
+def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOptions = TrackOptions()) -> TrackResult:
+    """Refine T_init ([4, 4] T_world_sensor) so that the scan points_s ([N, 3] sensor frame, already
+    cropped / downsampled) lie on the map's zero level set. See the module docstring."""
+    T_init = np.asarray(T_init, np.float64)
+    pts, mask = subsample(points_s, opts.max_points, opts.seed)
+    if not mask.any():
+        return TrackResult(T_init.copy(), False, 0.0, float("inf"), 0)
+    origin = origin_world(static, state)
+    t0 = (T_init[:3, 3] - origin).astype(np.float32)
+    out = jax.device_get(track_program(static, opts, state, pts, mask, T_init[:3, :3].astype(np.float32), t0))
+    pose = np.eye(4)
+    pose[:3, :3] = np.asarray(out.R, np.float64)
+    pose[:3, 3] = np.asarray(out.t, np.float64) + origin
+    pose = orthonormalize(pose)
+    vf, rms = float(out.valid_fraction), float(out.rms_m)
+    ok = bool(out.converged) and vf >= opts.min_valid_fraction and rms <= opts.max_rms_m
+    return TrackResult(pose, ok, vf, rms, int(out.iterations))
