@@ -171,8 +171,9 @@ class SlamConfig:
     map_kind: str = "imt"             # imt: the transformable latent map, remapped at loops; n3: the N3 map of
                                       # n3_config, mapped online at the tracked poses (docs/slam.md)
     n3_track: bool = True             # n3: refine each odometry pose by tracking the scan against the N3 map
-    n3_loop: str = "rebuild"          # n3: how the map follows a loop correction: rebuild (every frame again at
-                                      # the optimised poses), moved (re-add the frames that moved), none
+    n3_loop: str = "moved"            # n3: how the map follows a loop correction: rebuild (every frame again at
+                                      # the optimised poses), moved (re-add the frames that moved, their old
+                                      # training pairs removed), none (docs/slam.md)
     n3_loop_min_move_m: float = 0.02  # n3: a loop that moves no frame's position more than this leaves the map
                                       # as it is; n3_loop moved re-adds the frames that moved more
     output: str = "runs/slam"           # run directory (`--out` overrides it)

@@ -10,8 +10,9 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
   3. the frame goes into the N3 map at that pose (`N3Mapper.add_frame`, the frame program of `jaxmap map`);
   4. when a loop is accepted and the pose graph moves the frames, the map follows (`n3_loop`):
      `rebuild` empties the map and integrates every frame so far again at its optimised pose (when
-     any frame moved more than `n3_loop_min_move_m`); `moved` re-adds, into the map as it is, the
-     frames whose position moved more than that; `none` leaves the map as mapped (an ablation). docs/slam.md has the
+     any frame moved more than `n3_loop_min_move_m`); `moved` removes the stored training pairs of
+     the frames whose position moved more than that (`N3Mapper.forget_frames`) and adds those frames
+     again, into the map as it is; `none` leaves the map as mapped (an ablation). docs/slam.md has the
      measurements that chose between them.
 The preprocessed scans (sensor frame) of every frame are kept on the host for step 4 (a few hundred
 kB a frame).
@@ -27,7 +28,7 @@ import numpy as np
 
 from jaxmap.config import MapConfig, SlamConfig, load_config
 from jaxmap.errors import JaxmapError
-from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
+from jaxmap.frame_loop import Frame, Prefetcher, Progress, medians, run_frames
 from jaxmap.geometry import compose
 from jaxmap.n3 import scan
 from jaxmap.n3.mapper import N3Mapper
@@ -83,9 +84,11 @@ class N3SlamStep:
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
         self.prepared: list[tuple] = []          # per frame: (points, normals) sensor frame
         self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at
+        self.counter: list[int] = []             # per frame: its number in the map (`N3Mapper.frames` as added)
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
         self.loops: list[dict] = []
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
+        self.records: list[dict] = []            # per frame: the step's record (timings of each part)
 
     def _refine(self, points: np.ndarray):
         """The front end's `refine` for this frame: track against the map (none before the first frame)."""
@@ -103,16 +106,19 @@ class N3SlamStep:
 
     def __call__(self, frame: SlamFrame) -> tuple[dict, np.ndarray]:
         try:
-            r = self.fe.add_frame(frame.points, refine=self._refine(frame.points))
+            # tracked with the map's own preprocessed points (cropped to its range, downsampled)
+            r = self.fe.add_frame(frame.points, refine=self._refine(frame.prepared[0]))
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
             self.prepared.append(frame.prepared)
             self.mapped_at.append(r.pose.copy())
+            self.counter.append(self.mapper.frames)
             info = self.mapper.add_frame(None, None, prepared=(*frame.prepared, r.pose))
             record = dict(r.timings, map_s=info["total_s"], loss=info["loss"], loops=len(self.loops),
                           ok=r.odometry_ok, tracked=r.refined)
             if r.optimized:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
+            self.records.append(record)
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
             raise JaxmapError(f"jaxmap slam (map_kind n3) failed at frame {frame.index}: {type(e).__name__}: {e}") from e
@@ -129,15 +135,19 @@ class N3SlamStep:
         t0 = time.perf_counter()
         if mode == "rebuild" and redo:
             mapper.reset()
+        removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
         for i in redo:
+            self.counter[i] = mapper.frames
             mapper.add_frame(None, None, prepared=(*self.prepared[i], traj[i]))
             self.mapped_at[i] = traj[i].copy()
         rec = {"frame": frame_index, "mode": mode, "frames": len(traj), "reintegrated": len(redo),
+               "pairs_removed": removed,
                "max_move_m": float(moves.max()), "median_move_m": float(np.median(moves)),
                "map_s": time.perf_counter() - t0}
-        log.info("loop at frame %d: the pose graph moved the frames by up to %.3f m (median %.3f m); n3_loop %s "
-                 "re-integrated %d of %d frames in %.1f s", frame_index, rec["max_move_m"], rec["median_move_m"],
-                 mode, len(redo), len(traj), rec["map_s"])
+        (log.info if redo else log.debug)(
+            "loop at frame %d: the pose graph moved the frames by up to %.3f m (median %.3f m); n3_loop %s "
+            "re-integrated %d of %d frames in %.1f s", frame_index, rec["max_move_m"], rec["median_move_m"],
+            mode, len(redo), len(traj), rec["map_s"])
         return rec
 
 
@@ -152,7 +162,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     loop = run_frames(Prefetcher(seq, 0, len(seq), load), step, total=len(seq), progress=bar, viewer=viewer)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
             "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
-            "loop": loop}
+            "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "map_s", "loop_s"))}
 
 
 def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
