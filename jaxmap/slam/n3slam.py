@@ -79,8 +79,8 @@ class N3SlamStep:
     """The frame-loop step of `map_kind: n3` (see the module docstring).
     track: fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
 
-    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None):
-        self.cfg, self.mapper, self.track = cfg, mapper, track
+    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None, viewer=None):
+        self.cfg, self.mapper, self.track, self.viewer = cfg, mapper, track, viewer
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
         self.prepared: list[tuple] = []          # per frame: (points, normals) sensor frame
         self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at
@@ -118,11 +118,21 @@ class N3SlamStep:
             if r.optimized:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
+                self._show_loop(r)
             self.records.append(record)
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
             raise JaxmapError(f"jaxmap slam (map_kind n3) failed at frame {frame.index}: {type(e).__name__}: {e}") from e
         return record, r.pose
+
+    def _show_loop(self, r) -> None:
+        """The viewer redraws the trajectory and marks the loop (as `jaxmap.slam.run.FrontEndStep` does)."""
+        if self.viewer is None:
+            return
+        self.viewer.on_trajectory(self.fe.trajectory())
+        if self.fe.loops:
+            c, k = self.fe.loops[-1]
+            self.viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
 
     def follow_loop(self, frame_index: int) -> dict:
         """Make the map follow the optimised trajectory (`n3_loop`); returns the loop's record."""
@@ -156,7 +166,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     Returns the trajectory, the odometry alone, per-loop and per-frame tracking records, and the LoopResult."""
     if track is None and cfg.n3_track:
         track = default_tracker()
-    step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track)
+    step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
     load = lambda s, i: prepare_slam_frame(mapper.cfg.preprocess, s, i)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
     loop = run_frames(Prefetcher(seq, 0, len(seq), load), step, total=len(seq), progress=bar, viewer=viewer)

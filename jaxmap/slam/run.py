@@ -41,6 +41,7 @@ from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
+from jaxmap.n3.core import COMPILE_SECONDS
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.n3slam import n3_checkpoint, n3_map_config, open_n3_mapper, run_n3_frontend
@@ -215,7 +216,7 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     rec = finish_run(mapper, icfg, out_dir, loop, evaluate=evaluate, viewer=viewer)
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     if cfg.n3_config:
-        out["n3"] = _n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
+        out["n3"] = n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
         json.dump(out, f, default=_jsonable)
     return out
@@ -228,6 +229,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
     `N3Mapper.load`s; n3_config.yaml is the map's resolved config). track: a tracker in place of
     `jaxmap.slam.track.track_scan` (tests)."""
     seq = open_run_sequence(cfg)
+    n_compiles = len(COMPILE_SECONDS)
     mapper = open_n3_mapper(cfg, out_dir, seq)
     save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
     viewer = open_viewer(view, mapper)
@@ -240,7 +242,8 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
            "loop_map_s": float(sum(lp["map_s"] for lp in res["loops"])), "tracking": res["tracking"],
            "step": res["step_medians"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
-    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer)
+    extra = {"compile_s": float(sum(COMPILE_SECONDS[n_compiles:])), "compiles": len(COMPILE_SECONDS) - n_compiles}
+    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer, extra=extra)
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
         json.dump(out, f, default=_jsonable)
@@ -266,8 +269,8 @@ def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarra
     return out
 
 
-def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) -> dict:
-    """The N3 map of the same frames with the optimised poses (written as a KITTI pose file beside a
+def n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool, desc: str = "optimised poses") -> dict:
+    """The N3 map of the same frames at `poses` [N,4,4] (the optimised ones in `run_slam`) (written as a KITTI pose file beside a
     symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
     ncfg = n3_map_config(cfg, out_dir)
     os.makedirs(out_dir, exist_ok=True)
@@ -278,7 +281,7 @@ def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) ->
         return mapper.add_frame(frame.points, poses[frame.position]), poses[frame.position]
 
     loop = run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
-                      progress=Progress("n3 (optimised poses)", progress))
+                      progress=Progress(f"n3 ({desc})", progress))
     return finish_run(mapper, ncfg, out_dir, loop)
 
 
