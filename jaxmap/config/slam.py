@@ -171,6 +171,8 @@ class SlamConfig:
     map_kind: str = "imt"             # imt: the transformable latent map, remapped at loops; n3: the N3 map of
                                       # n3_config, mapped online at the tracked poses (docs/slam.md)
     n3_track: bool = True             # n3: refine each odometry pose by tracking the scan against the N3 map
+    n3_track_min_valid: float = 0.93  # n3: adopt a tracked pose only when this fraction of the scan's points lies in
+                                      # the map (a scan mostly beyond the map's edge tracks biased: docs/slam.md)
     n3_loop: str = "moved"            # n3: how the map follows a loop correction: rebuild (every frame again at
                                       # the optimised poses), moved (re-add the frames that moved, their old
                                       # training pairs removed), none (docs/slam.md)

@@ -4,7 +4,8 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
   1. the front end's odometry (`FrontEnd`: ICP or KISS-ICP) guesses the pose;
   2. with `n3_track`, the scan is tracked against the N3 map as trained so far
      (`jaxmap.slam.track.track_scan`: the pose that puts the scan on the map's zero level set); when
-     tracking says ok the front end adopts that pose (`FrontEnd.add_frame(refine=...)`: its next
+     tracking says ok (converged, small residual, and at least `n3_track_min_valid` of the points
+     inside the map) the front end adopts that pose (`FrontEnd.add_frame(refine=...)`: its next
      prediction, the keyframe's graph node and the loop search start from it), else the odometry
      pose is kept;
   3. the frame goes into the N3 map at that pose (`N3Mapper.add_frame`, the frame program of `jaxmap map`);
@@ -61,12 +62,13 @@ def prepare_slam_frame(cfg_preprocess, seq, i: int) -> SlamFrame:
     return SlamFrame(i, int(fr.index), scan.clean_points(fr.points, i), fr.pose, prepared=(pts, nrm))
 
 
-def default_tracker():
+def default_tracker(min_valid_fraction: float):
     """fn(static, state, points_s, T_init) -> TrackResult: `jaxmap.slam.track.track_scan` with its
-    default options (imported here: the tracker is only needed when `n3_track` is on)."""
+    default options but `min_valid_fraction` (imported here: the tracker is only needed when `n3_track`
+    is on)."""
     from jaxmap.slam.track import TrackOptions, track_scan
 
-    opts = TrackOptions()
+    opts = TrackOptions(min_valid_fraction=min_valid_fraction)
     return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
 
 
@@ -165,7 +167,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     """The front end, tracking and the online N3 map over the whole sequence.
     Returns the trajectory, the odometry alone, per-loop and per-frame tracking records, and the LoopResult."""
     if track is None and cfg.n3_track:
-        track = default_tracker()
+        track = default_tracker(cfg.n3_track_min_valid)
     step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
     load = lambda s, i: prepare_slam_frame(mapper.cfg.preprocess, s, i)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
