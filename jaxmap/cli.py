@@ -56,6 +56,11 @@ def _synth_args(sub) -> None:
                         "surfaces, p = 0.5-0.9 rising with range; intensity = reflectivity), outliers (1 in 2000 "
                         "returns at a range uniform in 0.5-50 m), beam_offsets (a constant N(0, 1 cm) range offset "
                         "per beam)")
+    p.add_argument("--lane-shift", type=float, default=0.0, metavar="M",
+                   help="city: a second drive through the same city: the loop shifted outward by M metres "
+                        "(negative: towards the centre line), same scene (for jaxmap localize)")
+    p.add_argument("--start", type=float, default=0.0, metavar="M",
+                   help="city: the drive starts M metres along the loop (same scene)")
 
 
 def _eval_args(sub) -> None:
@@ -135,6 +140,21 @@ def _slam_args(sub) -> None:
     _add_view_args(p)
 
 
+def _localize_args(sub) -> None:
+    p = sub.add_parser("localize", help="localise a sequence in a saved N3 map (tracking against it, no map update)")
+    p.add_argument("map", help="run directory of a jaxmap map run (or its checkpoint/ directory)")
+    p.add_argument("--data", required=True, help="sequence directory to localise")
+    p.add_argument("--init", default=None, metavar="POSE",
+                   help="the first scan's pose in the map's world frame: 12 numbers (a KITTI line) or 16 (4x4), "
+                        "in quotes, or a file holding them (default: the sequence's first pose from its poses.txt, "
+                        "else the identity)")
+    p.add_argument("--out", default="runs/localize", help="run directory (default runs/localize)")
+    p.add_argument("--voxel", type=float, default=0.2, help="scans are downsampled to this voxel (m) for tracking")
+    p.add_argument("--points", type=int, default=4096, help="scan points used per frame (a random subset)")
+    _add_overwrite_arg(p)
+    p.add_argument("--no-progress", action="store_true")
+
+
 def _info_args(sub) -> None:
     p = sub.add_parser("info", help="what a sequence is: kind, frames, ROS bag topics with types and counts")
     p.add_argument("path", help="sequence directory or file (KITTI, depth, ROS bag/MCAP, TUM RGB-D, Replica, LAS)")
@@ -175,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true",
                         help="show the Python traceback of an error (by default: one line saying what to fix)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _info_args, _view_args, _bench_args):
+    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _localize_args, _info_args, _view_args, _bench_args):
         add(sub)
     return parser
 

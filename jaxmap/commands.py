@@ -40,8 +40,15 @@ def synth(args) -> int:
             kw["traffic"] = args.traffic
         if args.realistic is not None:
             kw["realistic"] = args.realistic
-    elif args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None:
-        raise SystemExit("jaxmap synth: --layout, --beams, --traffic and --realistic are for the city scene")
+        if args.lane_shift or args.start:
+            if args.long or args.layout != "grid":
+                raise SystemExit("jaxmap synth: --lane-shift and --start are for the grid loop (not --long, "
+                                 "not --layout suburb)")
+            kw.update(lane_shift_m=args.lane_shift, start_m=args.start)
+    elif (args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None
+          or args.lane_shift or args.start):
+        raise SystemExit("jaxmap synth: --layout, --beams, --traffic, --realistic, --lane-shift and --start are "
+                         "for the city scene")
     output_dir(args.out)
     stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
     print(json.dumps(stats))
@@ -191,6 +198,28 @@ def slam(args) -> int:
     if "metrics" in out:
         brief["chamfer_l1_cm"] = out["metrics"]["chamfer_l1_cm"]
         brief["f_score"] = out["metrics"]["f_score"]
+    print(json.dumps(brief))
+    return 0
+
+
+def localize(args) -> int:
+    """`jaxmap localize MAP --data SEQ [--init POSE] [--out RUN]`: localise a sequence in a saved N3 map."""
+    from jaxmap.slam.localize import localize_sequence, read_init, summary_table
+    from jaxmap.slam.track import TrackOptions
+
+    init = read_init(args.init) if args.init else None
+    if not args.voxel > 0 or args.points < 16:
+        raise ConfigError(f"--voxel {args.voxel:g} must be > 0 (metres) and --points {args.points} >= 16; "
+                          "e.g. --voxel 0.2 --points 4096")
+    opts = TrackOptions(max_points=args.points)
+    with claim(args.out, "localize", overwrite=args.overwrite):
+        m = localize_sequence(args.map, args.data, args.out, init=init, opts=opts, voxel_m=args.voxel,
+                              progress=not args.no_progress)
+    print(summary_table(m))
+    brief = {k: m[k] for k in ("run", "frames", "localised", "localised_fraction")}
+    if "position_error_cm" in m:
+        brief["position_error_median_cm"] = m["position_error_cm"]["median"]
+        brief["position_error_max_cm"] = m["position_error_cm"]["max"]
     print(json.dumps(brief))
     return 0
 

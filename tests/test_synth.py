@@ -519,3 +519,26 @@ def test_city_realistic_artifacts(tmp_path):
     assert json.loads((tmp_path / "b" / "meta.json").read_text())["sensor"]["realistic"] == ["mixed", "dropout"]
     with pytest.raises(ValueError, match="realistic"):
         generate_city(tmp_path / "x", small=True, realistic="fog")
+
+
+def test_second_drive_through_the_same_city(tmp_path):
+    """--lane-shift / --start: another drive (shifted towards the centre line, started further along the loop)
+    through the very same scene, whose scans lie on it."""
+    from jaxmap.cli import main
+    from jaxmap.synth.city import SMALL
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(["synth", "city", "--small", "--frames", "2", "--out", str(a)]) == 0
+    assert main(["synth", "city", "--small", "--frames", "2", "--lane-shift", "-1.0", "--start", "3.0",
+                 "--out", str(b)]) == 0
+    assert (a / "gt_mesh.ply").read_bytes() == (b / "gt_mesh.ply").read_bytes()  # parked cars included
+    pa, pb = open_sequence(a).poses, open_sequence(b).poses
+    hy = SMALL.street_y + SMALL.lane_offset
+    np.testing.assert_allclose(pa[0][:2, 3], [0.0, -hy], atol=1e-6)
+    np.testing.assert_allclose(pb[0][:2, 3], [3.0, -(hy - 1.0)], atol=1e-6)
+    d = gt_distance(b, world_points(open_sequence(b)), refine_above=10.0)
+    assert np.median(d) < 0.01
+    meta = json.loads((b / "meta.json").read_text())["trajectory"]
+    assert meta["lane_shift_m"] == -1.0 and meta["start_m"] == 3.0
+    with pytest.raises(SystemExit, match="grid loop"):
+        main(["synth", "city", "--long", "--lane-shift", "1", "--out", str(tmp_path / "c")])

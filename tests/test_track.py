@@ -1,6 +1,8 @@
 """Tracking against the implicit map (`jaxmap.slam.track`): the SE(3) refinement recovers a known
 perturbation (5 deg about a tilted axis, 0.5 m) of a scan, against an analytic SDF and against a small N3
 map built here from an analytic hall; a wrong initial pose is reported as a failure, not as a pose."""
+import json
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -92,6 +94,19 @@ def test_tracking_recovers_5_deg_and_half_a_metre_in_an_n3_map(hall_map):
     assert res.pose.dtype == np.float64 and np.allclose(res.pose[:3, :3] @ res.pose[:3, :3].T, np.eye(3))
 
 
+def test_the_search_brings_a_guess_from_outside_the_fields_reach(hall_map):
+    """1.2 m along the hall and 15 deg off: the field's gradient does not reach that far (LM alone stays
+    wrong, and says so); the grid search of shifts and turns before it gets back within 0.2 deg, 2 cm."""
+    T0 = make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.deg2rad(15.0)),
+                   SENSOR + np.array([1.2, 0.3, 0.0]))
+    alone = track_scan(hall_map.static, hall_map.state, scan(), T0)
+    rot, pos = errors(alone.pose)
+    assert not alone.ok and (rot > 1.0 or pos > 0.1), (alone, rot, pos)
+    res = track_scan(hall_map.static, hall_map.state, scan(), T0, TrackOptions(search_m=2.0))
+    rot, pos = errors(res.pose)
+    assert res.ok and rot < 0.2 and pos < 0.02, (res, rot, pos)
+
+
 @pytest.mark.parametrize("T0, why", [
     (make_pose(np.eye(3), SENSOR + np.array([40.0, 0.0, 0.0])), "40 m off: outside the map"),
     (make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.pi / 2), SENSOR), "turned 90 deg"),
@@ -106,3 +121,82 @@ def test_a_wrong_initial_pose_is_reported_as_a_failure(hall_map, T0, why):
 def test_an_empty_scan_is_not_ok(hall_map):
     res = track_scan(hall_map.static, hall_map.state, np.zeros((0, 3), np.float32), np.eye(4))
     assert not res.ok and res.valid_fraction == 0.0 and res.iterations == 0
+
+
+# ------------------------------------------------------------------------------------------------
+# jaxmap localize: a sequence through the hall, localised in the saved map
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def hall_run(hall_map, tmp_path_factory):
+    """(map checkpoint directory, KITTI sequence of 6 hall scans 0.6 m apart on a gentle curve)."""
+    from jaxmap.io.kitti import write_poses
+    from jaxmap.io.pointcloud import write_scan_bin
+
+    root = tmp_path_factory.mktemp("hall_run")
+    hall_map.save(str(root / "map" / "checkpoint"))
+    seq = root / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    poses = []
+    for i in range(6):
+        o = np.array([-3.0 + 0.6 * i, 0.8 + 0.05 * i * i, 1.7])
+        R = rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.deg2rad(2.0 * i))
+        world = hall_scan(o, box=BOX, max_range=12.0).astype(np.float64)
+        write_scan_bin(str(seq / "velodyne" / f"{i:06d}.bin"), (world @ R).astype(np.float32))  # R^T p: sensor frame
+        poses.append(make_pose(R, o))
+    write_poses(str(seq / "poses.txt"), np.stack(poses))
+    return root / "map", seq
+
+
+def test_localize_follows_a_sequence_through_the_saved_map(hall_run, tmp_path, capsys):
+    from jaxmap.cli import main
+
+    map_dir, seq = hall_run
+    out = tmp_path / "loc"
+    assert main(["localize", str(map_dir), "--data", str(seq), "--out", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "frames localised   6 / 6" in printed
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["localised_fraction"] == 1.0 and m["lost_frames"] == []
+    assert m["position_error_cm"]["max"] < 3.0 and m["rotation_error_deg"]["max"] < 0.3, m
+    assert len((out / "trajectory_kitti.txt").read_text().splitlines()) == 6
+    assert len(json.loads((out / "frames.json").read_text())) == 6
+
+
+def test_localize_with_a_wrong_initial_pose_fails_with_a_clear_error(hall_run, tmp_path, capsys):
+    """A first pose 40 m off (outside the map): exit code 2 and one line naming the scan and --init; no
+    trajectory is written as if it were right."""
+    from jaxmap.cli import main
+
+    map_dir, seq = hall_run
+    out = tmp_path / "loc"
+    init = "1 0 0 40  0 1 0 0.8  0 0 1 1.7"
+    assert main(["localize", str(map_dir), "--data", str(seq), "--out", str(out), "--no-progress",
+                 "--init", init]) == 2
+    err = capsys.readouterr().err
+    assert "000000.bin" in err and "could not be localised" in err and "--init" in err and "Traceback" not in err
+    assert not (out / "trajectory_kitti.txt").exists()
+    assert main(["localize", str(map_dir), "--data", str(seq), "--out", str(tmp_path / "x"), "--no-progress",
+                 "--init", "1 2 3"]) == 2
+    assert "12 numbers" in capsys.readouterr().err
+
+
+def test_read_init_takes_a_kitti_line_a_matrix_or_a_file(tmp_path):
+    from jaxmap.errors import DataError
+    from jaxmap.slam.localize import read_init
+
+    T = make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), 0.3), np.array([1.0, -2.0, 3.0]))
+    line = " ".join(repr(float(v)) for v in T[:3].ravel())
+    np.testing.assert_allclose(read_init(line), T, atol=1e-12)
+    np.testing.assert_allclose(read_init(",".join(repr(float(v)) for v in T.ravel())), T, atol=1e-12)
+    (tmp_path / "kitti.txt").write_text(line + "\n" + " ".join(["0"] * 12) + "\n")   # the first pose of a file
+    np.testing.assert_allclose(read_init(str(tmp_path / "kitti.txt")), T, atol=1e-12)
+    (tmp_path / "m.txt").write_text("\n".join(" ".join(repr(float(v)) for v in row) for row in T) + "\n")
+    np.testing.assert_allclose(read_init(str(tmp_path / "m.txt")), T, atol=1e-12)
+    with pytest.raises(DataError, match="12 numbers"):
+        read_init("1 0 0")
+    bad = T.copy()
+    bad[0, 0] = 2.0
+    with pytest.raises(DataError):
+        read_init(" ".join(repr(float(v)) for v in bad[:3].ravel()))

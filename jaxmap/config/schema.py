@@ -168,6 +168,8 @@ class LatentMapConfig:
     remap_min_rotation_deg: float = 0.05  # remap a keyframe whose pose moved more than this ...
     remap_min_translation_m: float = 0.002  # ... or this
     remap_rebuild_fraction: float = 0.5  # rebuild the map from every keyframe when more than this share moved
+    remap: str = "reencode"           # keyframes keep pooled cells, re-encoded at the new pose | "transform":
+                                      # they keep latent local maps, moved with Jacobians (jaxmap bench imt)
     cells_per_voxel: int = 1          # points are pooled into cells of voxel / this before encoding (0 = none)
     transform_cells_per_voxel: int = 2  # the same for local maps encoded with Jacobians (for `transform`)
     initial_capacity: int = 16384     # hash-table slots of the global map at start (grows, logged)

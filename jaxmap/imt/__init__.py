@@ -8,9 +8,10 @@ SDF mean and standard deviation (voxel units) that are exactly invariant to a co
 The latent map (docs/architecture.md): `pool_cells` + `encode_keyframes` / `encode_frame` (a frame's
 local map on the world grid), `fuse` / `remove` (eq. 11 on sums), `transform` (eqs. 3-10, onto the
 global grid), `mesh` / `query` (decoded SDF, marching cubes). The map of a sequence is pure functions
-over one state (`jaxmap.imt.core`: `init`, `integrate` = one compiled `step` per frame, `remap`
-= re-encode the keyframes whose pose changed, an immutable `KeyframeStore`); `ImtMapper` is their
-facade over a sequence (`jaxmap imt`).
+over one state (`jaxmap.imt.core`: `init`, `integrate` = one compiled `step` per frame, `remap` =
+re-encode the keyframes whose pose changed from their pooled cells in an immutable `KeyframeStore`,
+or, with `map.remap: transform`, move their latent local maps kept in a `LatentStore`); `ImtMapper`
+is their facade over a sequence (`jaxmap imt`).
 """
 from jaxmap.config.prior import EncoderConfig, LatentDecoderConfig, PriorConfig
 from jaxmap.imt.decoder import Decoder
@@ -20,6 +21,7 @@ from jaxmap.imt.latent_map import (LatentMap, VoxelBatch, encode_cells, encode_f
                                    fuse, pool_cells, remove)
 from jaxmap.imt.meshing import mesh, query
 from jaxmap.imt.remap import KeyframeStore, RemapOptions
+from jaxmap.imt.latent_store import LatentStore
 from jaxmap.imt.core import CellBatch, ImtState, ImtStatic, StepStats, init, integrate, remap, step
 from jaxmap.imt.transform import transform, transform_batch
 from jaxmap.imt.vn import (
@@ -37,7 +39,7 @@ from jaxmap.imt.vn import (
 
 __all__ = [
     "CellBatch", "ImtState", "ImtStatic", "StepStats", "init", "integrate", "step",
-    "KeyframeStore", "LatentMap", "RemapOptions", "VoxelBatch", "encode_cells", "encode_frame", "encode_keyframes",
+    "KeyframeStore", "LatentMap", "LatentStore", "RemapOptions", "VoxelBatch", "encode_cells", "encode_frame", "encode_keyframes",
     "encode_world", "fuse", "mesh", "pool_cells",
     "query", "remap", "remove", "transform", "transform_batch",
     "Decoder", "LatentDecoderConfig", "Encoder", "EncoderConfig", "Jac", "Prior", "PriorConfig", "VNLeakyReLU",

@@ -24,6 +24,14 @@ rounding of the sums.
 `ImtState.active` counts the voxels with weight > 0; every step updates it from the rows it touched,
 so the host never copies the weight vector to count them.
 
+Remap methods (`ImtStatic.remap`, `map.remap`): "reencode" keeps each keyframe's pooled cells
+(`KeyframeStore`) and a remap re-encodes a moved keyframe at its old pose (-w) and its new pose (+w)
+with the frame program itself, padded to shapes the frames compiled (`apply_keyframes`); "transform"
+keeps each keyframe's latent local map with Jacobians (`LatentStore`, float16; the step encodes with
+Jacobians and fuses the rounded latents) and a remap moves the stored maps: `move_step`, one program
+of MOVE_ROWS stored voxels splatted by their keyframe's motion (`move_keyframes`). Either way the
+batches of a remap are dispatched without waiting and their stats read once (`_dispatch_all`).
+
 Compiled shapes: one `step` per (map capacity, padded cell count `latent_map.bucket`, slots, scratch
 capacity). The encoder is now compiled with each map capacity (3.2 s a program on a 2-core CPU, 1.7 s
 for the encode alone), so a cold first run compiles more than separate encode / fuse programs did
@@ -43,12 +51,14 @@ import numpy as np
 
 from jaxmap.grid import hashing
 from jaxmap.imt import latent_map as lm
-from jaxmap.imt.remap import GROUP_CELLS, GROUP_SLOTS, KeyframeStore, RemapOptions, moved_keyframes
+from jaxmap.imt.latent_store import COMPACT, LatentStore, RowBatch
+from jaxmap.imt.remap import KeyframeStore, RemapOptions, moved_keyframes
+from jaxmap.imt.transform import splat_trilinear
 
 log = logging.getLogger("jaxmap")
 
 FRAME_SLOTS = 8          # keyframe slots of a frame's batch (one used): the padded slot count of an encode
-REMAP_MIN_CELLS = 4096   # smallest padded cell count of a remap group
+MOVE_ROWS = 8192         # stored voxels per `move_step` call (8 splats each; one compiled shape)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,11 +68,19 @@ class ImtStatic:
     voxel_size: float          # metres
     min_points: int            # voxels fed by fewer points of a keyframe are dropped
     cells_per_voxel: int       # pooling of a frame's points before encoding (0 = every point)
+    remap: str = "reencode"    # "reencode" (keyframes keep pooled cells) | "transform" (latent local maps)
+    jacobian_sign: float = -1.0  # transform: the first-order term (see `transform.py`)
+    splat_power: float = 2.0     # transform: sharpened trilinear splats
 
     @classmethod
     def from_config(cls, cfg) -> "ImtStatic":
         c = cfg.map
-        return cls(float(c.voxel_size_m), int(c.min_points), int(c.cells_per_voxel))
+        return cls(float(c.voxel_size_m), int(c.min_points), int(c.cells_per_voxel), str(c.remap),
+                   float(c.jacobian_sign), float(c.splat_power))
+
+    def new_store(self):
+        """An empty keyframe store of the kind `remap` needs."""
+        return LatentStore() if self.remap == "transform" else KeyframeStore()
 
 
 @flax.struct.dataclass
@@ -130,28 +148,62 @@ def _active_delta(before: jax.Array, after: jax.Array, rows: jax.Array, r_cap: i
     return jnp.sum(first & (after[r] > 0), dtype=jnp.int32) - jnp.sum(first & (before[r] > 0), dtype=jnp.int32)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 4), donate_argnums=1)
-def step(static: ImtStatic, state: ImtState, prior, batch: CellBatch, encode_capacity: int):
-    """Encode + fuse of one batch of cells, one compiled program, the state donated.
-
-    Returns (state, StepStats); when `stats.ok` is False the state is unchanged: grow and call again."""
+def _fuse(state: ImtState, b: lm.VoxelBatch, blocked: jax.Array):
+    """Insert the voxels of `b` into the map's table and scatter its (signed) sums, unless `blocked` or the
+    table is full; then nothing changes (the insert reverts itself, the scatter is masked)."""
     m = state.map
-    coords, lat_sum, _, w, levels, _, enc_over = lm.encode_pairs(
-        prior, batch.cells, batch.normals, batch.counts, batch.slot, jnp.float32(static.min_points),
-        static.voxel_size, encode_capacity, False)
-    b = lm.signed_batch(coords, lat_sum, w, levels, batch.signs)
     keys = lm.voxel_keys(b.coords)
-    live = b.valid & (b.weight != 0) & ~enc_over
+    live = b.valid & (b.weight != 0) & ~blocked
     limit = max(1, int(lm.MAX_LOAD * m.table.capacity))
     table, rows, map_over = hashing.insert(m.table, keys, live, row_capacity=limit)
     new = jax.lax.cond(map_over, _distinct_missing, lambda *a: jnp.zeros((), jnp.int32), m.table, keys, live)
-    ok = ~enc_over & ~map_over
+    ok = ~blocked & ~map_over
     rows = jnp.where(ok, rows, -1)
     out = lm.scatter(lm.LatentMap(table, m.coords, m.latent_sum, m.weight, m.jac_sum, m.voxel_size), rows, b, 1.0)
     r = jnp.where(b.valid & (rows >= 0) & (b.weight != 0), rows, m.rows)
     active = state.active + _active_delta(m.weight, out.weight, r, m.rows)
-    stats = StepStats(ok, enc_over, map_over, new, table.count, active, jnp.sum(live, dtype=jnp.int32))
+    stats = StepStats(ok, blocked, map_over, new, table.count, active, jnp.sum(live, dtype=jnp.int32))
     return ImtState(out, active), stats
+
+
+@functools.partial(jax.jit, static_argnums=(0, 4), donate_argnums=1)
+def step(static: ImtStatic, state: ImtState, prior, batch: CellBatch, encode_capacity: int):
+    """Encode + fuse of one batch of cells, one compiled program, the state donated.
+
+    With `static.remap == "transform"` the encode also gives each voxel's translation Jacobian, and the
+    latents are rounded to the store's float16 before they are fused, so that the store holds exactly
+    what the map holds. Returns (state, StepStats, local): local = (coords [R, 3], latent [R, C, 3] f16,
+    jac [R, C, 3, 3] f16, weight [R]) of the batch's voxels (weight 0 = unused row) in that mode, else None.
+    When `stats.ok` is False the state is unchanged: grow and call again."""
+    latent = static.remap == "transform"
+    coords, lat_sum, jac_sum, w, levels, _, enc_over = lm.encode_pairs(
+        prior, batch.cells, batch.normals, batch.counts, batch.slot, jnp.float32(static.min_points),
+        static.voxel_size, encode_capacity, latent)
+    local = None
+    if latent:
+        lat16, jac16 = lm.mean_of(lat_sum, w).astype(COMPACT), lm.mean_of(jac_sum, w).astype(COMPACT)
+        sw = w * batch.signs[jnp.maximum(levels, 0)]
+        b = lm.VoxelBatch(coords, lat16.astype(jnp.float32), None, sw, sw != 0)
+        local = (coords, lat16, jac16, w)
+    else:
+        b = lm.signed_batch(coords, lat_sum, w, levels, batch.signs)
+    state, stats = _fuse(state, b, enc_over)
+    return state, stats, local
+
+
+@functools.partial(jax.jit, static_argnums=0, donate_argnums=1)
+def move_step(static: ImtStatic, state: ImtState, rows: RowBatch):
+    """Fuse (sign +1) or remove (-1) stored local-map voxels placed by their keyframes' motions: the
+    trilinear splats of `transform.splat_trilinear` (exact entries go in as stored), one compiled
+    program, the state donated. Returns (state, StepStats, None)."""
+    b = lm.VoxelBatch(rows.coords, rows.latent.astype(jnp.float32), rows.jac.astype(jnp.float32), rows.weight,
+                      rows.weight > 0)
+    s = splat_trilinear(b, rows.motion, static.voxel_size, static.jacobian_sign, static.splat_power, False,
+                        rows.exact)
+    sw = s.weight * jnp.repeat(rows.sign, 8)
+    s = lm.VoxelBatch(s.coords, s.latent, None, sw, s.valid & (sw != 0))
+    state, stats = _fuse(state, s, jnp.zeros((), bool))
+    return state, stats, None
 
 
 def grow(state: ImtState, capacity: int) -> ImtState:
@@ -170,21 +222,16 @@ def _grown_capacity(capacity: int, rows: int, new: int) -> int:
     return out
 
 
-def run(static: ImtStatic, state: ImtState, prior, batch: CellBatch, hints: dict, log_growth: bool = True):
-    """`step` until the batch is in, growing the scratch table (`hints`) or the map as its stats ask.
-    Returns (state, StepStats as numpy)."""
-    n_pad = len(batch.counts)
+def _until_in(call, state: ImtState, more_scratch, log_growth: bool):
+    """`call(state)` (a step) until its batch is in: the scratch table grows through `more_scratch()`, the
+    map through `grow`. Returns (state, StepStats as numpy, local as numpy)."""
     while True:
-        cap = lm.encode_capacity(n_pad, hints)
-        state, stats = step(static, state, prior, batch, cap)
-        stats = jax.device_get(stats)  # the one host read of a step
+        state, stats, local = call(state)
+        stats, local = jax.device_get((stats, local))  # the one host read of a step
         if stats.ok:
-            hints[n_pad] = cap
-            return state, stats
+            return state, stats, local
         if stats.encode_overflow:
-            if 2 * cap > hashing.MAX_CAPACITY:
-                raise hashing.CapacityError(f"encode: more than {hashing.MAX_CAPACITY // 2} voxels in one batch")
-            hints[n_pad] = 2 * cap
+            more_scratch()
             continue
         old = state.map.table.capacity
         new_cap = _grown_capacity(old, int(stats.map_rows), int(stats.new_voxels))
@@ -192,6 +239,46 @@ def run(static: ImtStatic, state: ImtState, prior, batch: CellBatch, hints: dict
             log.info("latent map: growing %d -> %d slots (%d voxels + %d new)", old, new_cap, int(stats.map_rows),
                      int(stats.new_voxels))
         state = grow(state, new_cap)
+
+
+def _encode_call(static: ImtStatic, prior, batch: CellBatch, hints: dict):
+    """(call, more_scratch) for `_until_in`: `step` with the scratch size `hints` holds for the batch's
+    padded cell count (recorded with the map's capacity: the shapes `apply_keyframes` reuses)."""
+    n_pad = len(batch.counts)
+
+    def call(s):
+        hints[n_pad] = lm.encode_capacity(n_pad, hints)
+        hints[("compiled", s.map.table.capacity, n_pad)] = True
+        return step(static, s, prior, batch, hints[n_pad])
+
+    def more_scratch():
+        if 2 * hints[n_pad] > hashing.MAX_CAPACITY:
+            raise hashing.CapacityError(f"encode: more than {hashing.MAX_CAPACITY // 2} voxels in one batch")
+        hints[n_pad] *= 2
+
+    return call, more_scratch
+
+
+def run(static: ImtStatic, state: ImtState, prior, batch: CellBatch, hints: dict, log_growth: bool = True):
+    """`step` until the batch is in, growing the scratch table (`hints`) or the map as its stats ask.
+    Returns (state, StepStats as numpy, local as numpy or None)."""
+    call, more_scratch = _encode_call(static, prior, batch, hints)
+    return _until_in(call, state, more_scratch, log_growth)
+
+
+def _dispatch_all(state: ImtState, calls) -> ImtState:
+    """Run `calls` ((call, more_scratch) pairs, as `_until_in` takes them) one after the other without
+    waiting for their results, read all their stats once, and run those whose batch did not go in
+    again, one by one, growing what they need. The map stores sums, so the order does not matter; and
+    the host prepares the next batch while the last one runs."""
+    pending = []
+    for call, more_scratch in calls:
+        state, stats, _ = call(state)
+        pending.append((call, more_scratch, stats))
+    for (call, more_scratch, _), stats in zip(pending, jax.device_get([p[2] for p in pending])):
+        if not stats.ok:
+            state, _, _ = _until_in(call, state, more_scratch, False)
+    return state
 
 
 def cell_batch(store: KeyframeStore, ids, poses, signs, n_pad: int, slots: int) -> CellBatch:
@@ -206,27 +293,35 @@ def cell_batch(store: KeyframeStore, ids, poses, signs, n_pad: int, slots: int) 
                      lm.pad(slot, n_pad, np.int32), sg)
 
 
-def integrate(static: ImtStatic, state: ImtState, store: KeyframeStore, prior, cells, pose, frame: int,
-              hints: dict):
-    """Keep a frame's pooled cells as a keyframe and fuse them, in one `step`.
+def integrate(static: ImtStatic, state: ImtState, store, prior, cells, pose, frame: int, hints: dict):
+    """Keep a frame as a keyframe and fuse it, in one `step`.
 
     cells: `(centroids [M, 3], normals [M, 3], counts [M])` pooled on the world grid at `pose`
-    (`latent_map.pool_cells`); pose: [4, 4] T_world_sensor. The keyframe's cells are stored in its sensor
-    frame and the step encodes them as `store.cells_at` gives them back, as `remap` will.
+    (`latent_map.pool_cells`); pose: [4, 4] T_world_sensor. `KeyframeStore` (remap: reencode): the cells
+    are stored in the keyframe's sensor frame and the step encodes them as `store.cells_at` gives them
+    back, as `remap` will. `LatentStore` (remap: transform): the step's local map is stored.
     Returns (state, store with the keyframe appended, StepStats)."""
+    if static.remap == "transform":
+        pts, nrm, cnt = cells
+        n_pad = lm.bucket(len(cnt))
+        sg = np.ones(FRAME_SLOTS, np.float32)
+        batch = CellBatch(lm.pad(pts, n_pad, np.float32), lm.pad(nrm, n_pad, np.float32),
+                          lm.pad(cnt, n_pad, np.float32), np.zeros(n_pad, np.int32), sg)
+        state, stats, local = run(static, state, prior, batch, hints)
+        return state, store.add(frame, *local, pose), stats
     store = store.add(frame, *cells, pose)
     k = len(store) - 1
     batch = cell_batch(store, [k], store.poses()[k:], [1.0], lm.bucket(len(cells[0])), FRAME_SLOTS)
-    state, stats = run(static, state, prior, batch, hints)
+    state, stats, _ = run(static, state, prior, batch, hints)
     return state, store, stats
 
 
-def _groups(sizes: list[int]):
-    """Consecutive groups of keyframes of at most GROUP_CELLS cells and GROUP_SLOTS keyframes."""
+def _groups(sizes: list[int], max_cells: int, max_slots: int):
+    """Consecutive groups of keyframes of at most `max_cells` cells and `max_slots` keyframes."""
     start = 0
     while start < len(sizes):
         stop, total = start + 1, sizes[start]
-        while stop < len(sizes) and stop - start < GROUP_SLOTS and total + sizes[stop] <= GROUP_CELLS:
+        while stop < len(sizes) and stop - start < max_slots and total + sizes[stop] <= max_cells:
             total += sizes[stop]
             stop += 1
         yield slice(start, stop)
@@ -235,40 +330,77 @@ def _groups(sizes: list[int]):
 
 def apply_keyframes(static: ImtStatic, state: ImtState, store: KeyframeStore, prior, ids, poses, signs,
                     hints: dict) -> ImtState:
-    """Fuse (sign +1) or remove (-1) the contributions of keyframes `ids` at `poses`, one `step` per group
-    (a keyframe's removal and re-fusion stay in one group when they are adjacent)."""
-    for sl in _groups([len(store.counts[k]) for k in ids]):
-        n = sum(len(store.counts[k]) for k in ids[sl])
-        batch = cell_batch(store, ids[sl], poses[sl], signs[sl], lm.bucket(n, REMAP_MIN_CELLS), GROUP_SLOTS)
-        state, _ = run(static, state, prior, batch, hints, log_growth=False)
-    return state
+    """Fuse (sign +1) or remove (-1) the contributions of keyframes `ids` at `poses` by re-encoding their
+    cells, with FRAME_SLOTS slots and padded to the cell counts the frames were padded to at this map
+    capacity (`hints` records them): the frame program, already compiled, encodes them."""
+    sizes = store.sizes(ids)
+    cap = state.map.table.capacity
+    pads = sorted(k[2] for k in hints if isinstance(k, tuple) and k[0] == "compiled" and k[1] == cap)
+
+    def calls():
+        for sl in _groups(sizes, max(pads + [0]), FRAME_SLOTS):
+            # a keyframe larger than every frame padded at this capacity (fused before the map grew) compiles one shape
+            n_pad = next((p for p in pads if p >= sum(sizes[sl])), lm.bucket(sum(sizes[sl])))
+            yield _encode_call(static, prior, cell_batch(store, ids[sl], poses[sl], signs[sl], n_pad, FRAME_SLOTS),
+                               hints)
+
+    return _dispatch_all(state, calls())
 
 
-def remap(static: ImtStatic, state: ImtState, store: KeyframeStore, prior, new_poses,
-          opts: RemapOptions = RemapOptions(), hints: dict | None = None):
+def move_keyframes(static: ImtStatic, state: ImtState, store: LatentStore, ids, poses, signs) -> ImtState:
+    """Fuse (sign +1) or remove (-1) the stored local maps of keyframes `ids` placed at `poses`, in calls
+    of MOVE_ROWS stored voxels (a keyframe may span two calls: its voxels are independent)."""
+    def calls():
+        pending, n = [], 0
+        for j in range(len(ids) + 1):
+            if j < len(ids):
+                pending.append(store.rows(ids[j:j + 1], poses[j:j + 1], signs[j:j + 1]))
+                n += len(pending[-1].weight)
+            while n >= MOVE_ROWS or (j == len(ids) and n > 0):
+                rows = RowBatch(*(np.concatenate(col) for col in zip(*pending)))
+                part = RowBatch(*(lm.pad(x[:MOVE_ROWS], MOVE_ROWS, x.dtype) for x in rows))
+                pending = [RowBatch(*(x[MOVE_ROWS:] for x in rows))]
+                n = len(pending[0].weight)
+                yield (lambda s, part=part: move_step(static, s, part)), _no_scratch
+
+    return _dispatch_all(state, calls())
+
+
+def _no_scratch():
+    raise AssertionError("move_step has no scratch table")
+
+
+def remap(static: ImtStatic, state: ImtState, store, prior, new_poses, opts: RemapOptions = RemapOptions(),
+          hints: dict | None = None):
     """Move every keyframe whose pose changed to its new pose ([K, 4, 4] T_world_sensor, K = len(store)).
 
     The moved keyframes' contributions at their fused poses are removed (-w) and added at the new poses
-    (+w) in the same steps; when more than `opts.rebuild_fraction` of them moved, the map is rebuilt
-    from every keyframe. Returns (state, new store whose `pose_fused` are the new poses, moved ids); the
-    given store is left as it was."""
+    (+w): re-encoded from their cells (`KeyframeStore`) or moved from their stored local maps
+    (`LatentStore`, `move_keyframes`). When more than `opts.rebuild_fraction` of them moved, the map is
+    rebuilt from every keyframe. Returns (state, new store whose `pose_fused` are the new poses, moved
+    ids); the given store is left as it was."""
     hints = {} if hints is None else hints
     new_poses = np.asarray(new_poses, np.float64)
     if new_poses.shape != (len(store), 4, 4):
         raise ValueError(f"remap: expected {len(store)} poses [K,4,4], got shape {new_poses.shape}")
+    if isinstance(store, LatentStore) != (static.remap == "transform"):
+        raise ValueError(f"remap: a {type(store).__name__} cannot be remapped with remap = {static.remap!r}")
     changed = moved_keyframes(store, new_poses, opts)
     if not changed:
         return state, store, []
     rebuild = len(changed) > opts.rebuild_fraction * len(store)
     if rebuild:
-        ids = list(range(len(store)))
+        ids, poses = list(range(len(store))), new_poses
+        signs = np.ones(len(ids), np.float32)
         state = init(static, state.map.table.capacity, state.map.channels)
-        state = apply_keyframes(static, state, store, prior, ids, new_poses, np.ones(len(ids), np.float32), hints)
     else:
         # removal and fusion of a keyframe side by side: its -w and +w land in one scatter
         ids = [k for k in changed for _ in (0, 1)]
         poses = np.stack([P for k in changed for P in (store.poses()[k], new_poses[k])])
         signs = np.tile(np.array([-1.0, 1.0], np.float32), len(changed))
+    if static.remap == "transform":
+        state = move_keyframes(static, state, store, ids, poses, signs)
+    else:
         state = apply_keyframes(static, state, store, prior, ids, poses, signs, hints)
     log.info("remap: %d of %d keyframes moved%s", len(changed), len(store),
              " (rebuilt from every keyframe)" if rebuild else "")

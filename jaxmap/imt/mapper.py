@@ -32,7 +32,7 @@ from jaxmap.imt import latent_map as lm
 from jaxmap.imt.meshing import mesh as mesh_map
 from jaxmap.imt.meshing import query
 from jaxmap.imt.prior import load_prior
-from jaxmap.imt.remap import KeyframeStore, RemapOptions
+from jaxmap.imt.remap import RemapOptions
 from jaxmap.preprocess import preprocess_scan
 
 
@@ -52,7 +52,7 @@ class ImtMapper:
         self.prior = prior if prior is not None else load_prior(cfg.map.prior or None)
         self.static = core.ImtStatic.from_config(cfg)
         self.state = core.init(self.static, cfg.map.initial_capacity, self.prior.latent_channels)
-        self.store = KeyframeStore()
+        self.store = self.static.new_store()   # KeyframeStore (remap: reencode) or LatentStore (transform)
         self.hints: dict = {}     # padded cell count -> encode table size that sufficed (grown on overflow)
         self.timings: list[dict] = []
         self.remaps: list[dict] = []
@@ -170,6 +170,7 @@ class ImtMapper:
         m.map = lm.LatentMap(HashTable(*(jnp.asarray(t[k]) for k in ("keys", "rows", "count"))),
                              *(jnp.asarray(mp[k]) for k in ("coords", "latent_sum", "weight")), None,
                              cfg.map.voxel_size_m)
-        m.store = KeyframeStore.from_arrays({k: np.asarray(v) for k, v in tree["store"].items()})
+        arrays = {k: np.asarray(v) for k, v in tree["store"].items()}
+        m.store = type(m.store).from_arrays(arrays)
         m.timings, m.remaps = meta.get("timings", []), meta.get("remaps", [])
         return m

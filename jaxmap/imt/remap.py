@@ -18,11 +18,11 @@ When more than `rebuild_fraction` of the keyframes moved, the map is rebuilt fro
 instead (one encode of K keyframes is cheaper than 2 x K). Re-encoding at the new pose is exact:
 there is no interpolation blur, so a remapped map equals the map built with those poses (`jaxmap
 bench imt` measures it), and repeated loop closures accumulate nothing. `transform` (the paper's
-first-order interpolation with Jacobians) remains the tool for moving a local map whose points are gone.
+first-order interpolation with Jacobians) moves local maps whose points are gone.
 
-Keyframes are encoded in groups of at most `GROUP_CELLS` cells and `GROUP_SLOTS` keyframes (about 15
-room keyframes), padded to a `bucket` of at least 4096 cells and to `GROUP_SLOTS` slots: a whole-loop
-remap is a few calls of one compiled program, and every remap uses one of a dozen shapes.
+A remap reuses the frame program (`core.step`) at the largest cell count the frames were padded to, with
+their keyframe slots, so a loop closure compiles nothing that mapping did not. `latent_store` holds
+the other method, `map.remap: transform`: each keyframe keeps its latent local map and a remap moves it.
 """
 from __future__ import annotations
 
@@ -33,19 +33,40 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import SE3, pose_change
-from jaxmap.imt.latent_map import bucket, encode_keyframes
-
-GROUP_CELLS = 32768   # cells per encode call of a remap (one compiled shape; a 14 MB scratch accumulator)
-GROUP_SLOTS = 64      # keyframes per encode call of a remap
+from jaxmap.imt.latent_map import encode_keyframes
 
 
-def _frozen(x: np.ndarray) -> np.ndarray:
+def frozen(x: np.ndarray) -> np.ndarray:
+    """`x`, made read-only (the stores share their arrays between versions)."""
     x.setflags(write=False)
     return x
 
 
 @dataclass(frozen=True)
-class KeyframeStore:
+class PosedStore:
+    """What both keyframe stores share: the frame index of each keyframe and the pose whose contribution
+    is in the global map now (`pose_fused`, [4, 4] float64 T_world_sensor)."""
+
+    frames: tuple = ()
+    pose_fused: tuple = ()
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def with_poses(self, ids, poses):
+        """The store with `pose_fused` of keyframes `ids` replaced by `poses` ([len(ids), 4, 4])."""
+        fused = list(self.pose_fused)
+        for k, P in zip(ids, poses):
+            fused[k] = frozen(np.array(P, np.float64))
+        return dataclasses.replace(self, pose_fused=tuple(fused))
+
+    def poses(self) -> np.ndarray:
+        """[K, 4, 4] poses currently fused."""
+        return np.asarray(self.pose_fused).reshape(-1, 4, 4)
+
+
+@dataclass(frozen=True)
+class KeyframeStore(PosedStore):
     """Pooled cells of the keyframes (host numpy, sensor frame) and their fused poses. Immutable: `add` and
     `with_poses` return new stores sharing the (read-only) arrays of the old one.
 
@@ -54,14 +75,9 @@ class KeyframeStore:
     float64 T_world_sensor currently in the global map.
     """
 
-    frames: tuple = ()
     points: tuple = ()
     normals: tuple = ()
     counts: tuple = ()
-    pose_fused: tuple = ()
-
-    def __len__(self) -> int:
-        return len(self.frames)
 
     def add(self, frame: int, cells_w, normals_w, counts, pose) -> "KeyframeStore":
         """The store with one more keyframe: its pooled cells in the world frame at `pose` (kept in the
@@ -70,20 +86,10 @@ class KeyframeStore:
         T_s_w = SE3.from_matrix(pose).inverse()
         pts = T_s_w.apply(np.asarray(cells_w, np.float64))
         return KeyframeStore(
-            self.frames + (int(frame),), self.points + (_frozen(pts.astype(np.float32)),),
-            self.normals + (_frozen(T_s_w.rotation().apply(np.asarray(normals_w, np.float64)).astype(np.float16)),),
-            self.counts + (_frozen(np.asarray(counts).astype(np.uint16)),), self.pose_fused + (_frozen(pose.copy()),))
-
-    def with_poses(self, ids, poses) -> "KeyframeStore":
-        """The store with `pose_fused` of keyframes `ids` replaced by `poses` ([len(ids), 4, 4])."""
-        fused = list(self.pose_fused)
-        for k, P in zip(ids, poses):
-            fused[k] = _frozen(np.array(P, np.float64))
-        return dataclasses.replace(self, pose_fused=tuple(fused))
-
-    def poses(self) -> np.ndarray:
-        """[K, 4, 4] poses currently fused."""
-        return np.asarray(self.pose_fused).reshape(-1, 4, 4)
+            self.frames + (int(frame),), self.pose_fused + (frozen(pose.copy()),),
+            self.points + (frozen(pts.astype(np.float32)),),
+            self.normals + (frozen(T_s_w.rotation().apply(np.asarray(normals_w, np.float64)).astype(np.float16)),),
+            self.counts + (frozen(np.asarray(counts).astype(np.uint16)),))
 
     def nbytes(self) -> int:
         return int(sum(p.nbytes + n.nbytes + c.nbytes for p, n, c in zip(self.points, self.normals, self.counts))
@@ -91,6 +97,9 @@ class KeyframeStore:
 
     def cell_count(self) -> int:
         return int(sum(len(c) for c in self.counts))
+
+    def sizes(self, ids) -> list[int]:
+        return [len(self.counts[k]) for k in ids]
 
     def cells_at(self, ids, poses):
         """World-frame cells of keyframes `ids` at `poses` ([len(ids), 4, 4]), float64 on the host (so the
@@ -120,15 +129,15 @@ class KeyframeStore:
     @classmethod
     def from_arrays(cls, a: dict) -> "KeyframeStore":
         if "points" not in a:
-            raise DataError("this checkpoint's keyframe store holds latents (written by an older jaxmap); "
-                            "map the sequence again to get a store of pooled cells")
+            raise DataError("this checkpoint's keyframe store holds latent local maps (map.remap: transform); "
+                            "load it with that setting, or map the sequence again to get a store of pooled cells")
         off = np.concatenate([[0], np.cumsum(a["sizes"])]).astype(np.int64)
         sl = [slice(off[k], off[k + 1]) for k in range(len(a["frames"]))]
         return cls(tuple(int(f) for f in a["frames"]),
-                   tuple(_frozen(np.array(a["points"][x], np.float32)) for x in sl),
-                   tuple(_frozen(np.array(a["normals"][x], np.float16)) for x in sl),
-                   tuple(_frozen(np.array(a["counts"][x], np.uint16)) for x in sl),
-                   tuple(_frozen(np.array(a["pose_fused"][k], np.float64)) for k in range(len(sl))))
+                   tuple(frozen(np.array(a["pose_fused"][k], np.float64)) for k in range(len(sl))),
+                   tuple(frozen(np.array(a["points"][x], np.float32)) for x in sl),
+                   tuple(frozen(np.array(a["normals"][x], np.float16)) for x in sl),
+                   tuple(frozen(np.array(a["counts"][x], np.uint16)) for x in sl))
 
 
 @dataclass(frozen=True)
@@ -147,12 +156,7 @@ def moved_keyframes(store: KeyframeStore, new_poses, opts: RemapOptions) -> list
     return np.flatnonzero((ang > np.deg2rad(opts.min_rotation_deg)) | (trans > opts.min_translation_m)).tolist()
 
 
-def contributions(prior, store: KeyframeStore, ids, poses, voxel_size: float, min_points: int = 10, signs=None,
-                  grouped: bool = False):
-    """The global-grid contributions of keyframes `ids` at `poses` (a `VoxelBatch`, weights times `signs`).
-    grouped: pad as a remap group (`bucket` of at least 4096 cells, GROUP_SLOTS slots)."""
+def contributions(prior, store: KeyframeStore, ids, poses, voxel_size: float, min_points: int = 10, signs=None):
+    """The global-grid contributions of keyframes `ids` at `poses` (a `VoxelBatch`, weights times `signs`)."""
     pts, nrm, cnt, slot = store.cells_at(ids, poses)
-    pad = {}
-    if grouped:
-        pad = {"n_pad": bucket(len(pts), 4096), "slots_pad": GROUP_SLOTS}
-    return encode_keyframes(prior, pts, nrm, cnt, slot, len(ids), voxel_size, min_points, signs, **pad)
+    return encode_keyframes(prior, pts, nrm, cnt, slot, len(ids), voxel_size, min_points, signs)

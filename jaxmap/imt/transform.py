@@ -47,7 +47,7 @@ _NEIGHBOURS = np.array([[i, j, k] for i in (-1, 0, 1) for j in (-1, 0, 1) for k 
 
 @functools.partial(jax.jit, static_argnames=("voxel_size", "jacobian_sign", "power", "keep_jacobian"))
 def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sign: float = -1.0,
-                    power: float = 2.0, keep_jacobian: bool = False) -> VoxelBatch:
+                    power: float = 2.0, keep_jacobian: bool = False, exact=None) -> VoxelBatch:
     """Trilinear splats of a voxel batch moved by `T` ([4, 4], frame of b -> global).
 
     power: the 8 trilinear weights of a local voxel are raised to this power and renormalised to
@@ -59,13 +59,19 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     `T` may also be [P, 4, 4] (one pose per entry: many keyframes at once). The rotation of the latents
     and Jacobians is `vn.rotate` of the batch itself (its fields are marked), mapped over the entries.
     keep_jacobian: give each splat the rotated Jacobian too (for a map that will be transformed again).
+    exact: [P] bool or None: entries whose `T` is the identity, placed on their own voxel exactly (one
+    splat of the whole weight, the latent unchanged: what the map holds before any move), not through
+    `(c + 0.5) s / s - 0.5`, which float32 rounds off the lattice.
+    `T` may also be [P, 3, 4] (the top rows).
     """
     T = jnp.asarray(T, jnp.float32)
     if T.ndim == 2:
-        T = jnp.broadcast_to(T, (b.coords.shape[0], 4, 4))
+        T = jnp.broadcast_to(T, (b.coords.shape[0],) + T.shape)
     R, t = T[:, :3, :3], T[:, :3, 3]                                       # [P, 3, 3], [P, 3]
     c = (b.coords.astype(jnp.float32) + 0.5) * voxel_size                  # [P, 3] metres
     u = (jnp.einsum("pij,pj->pi", R, c) + t) / voxel_size - 0.5            # [P, 3] continuous global index
+    if exact is not None:
+        u = jnp.where(exact[:, None], b.coords.astype(jnp.float32), u)
     base = jnp.floor(u)
     frac = u - base
     rb = jax.vmap(rotate)(b, R)                                             # F R^T, R J R^T per entry

@@ -13,7 +13,14 @@ w = (k^2 / (k^2 + r^2))^2, the kernel scale k annealed from `kernel_start_m` dow
 first iterations (wide enough at first to pull a pose 0.5 m off in, tight at the end so that what the
 map does not hold - cars that moved, new facades - does not bias the pose). A step is kept when it
 lowers the robust cost (points outside the map count as the kernel's ceiling, so a step cannot win
-by pushing points out of the map); else the damping grows. All iterations run in one jitted program
+by pushing points out of the map); else the damping grows. The field is only defined near what the map
+saw (points farther than ~0.4 m from a surface fall outside its voxels and carry no gradient), so a
+guess a metre off along a street, or turned 15 degrees at a corner, has nothing pulling it back: with
+`search_m` > 0 the solve starts from the best of a grid of moves of the guess (shifts in map x, y within
++-search_m, turns about the sensor's vertical within +-search_yaw_deg: a ground vehicle's uncertain
+directions), each judged by the robust cost of a subset of the points, then a second such grid as fine
+as the first one's spacing around the best (`search_stages`), in the same program.
+All iterations run in one jitted program
 (`lax.while_loop`, stopping early on a small step) on a fixed number of points (`max_points`: a
 scan is subsampled or padded to it), so the program compiles once per map shape.
 
@@ -24,6 +31,7 @@ origin), subsampling, and the verdict `ok`.
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -41,17 +49,24 @@ from jaxmap.n3.state import N3State, N3Static, origin_world
 class TrackOptions:
     """How `track_scan` solves and judges (hashable: a static argument of the program)."""
 
-    iterations: int = 15               # at most this many LM iterations (fewer once a step is tiny)
+    iterations: int = 30               # at most this many LM iterations (fewer once a step is tiny)
     kernel_m: float = 0.1              # Geman-McClure scale k at the end, metres
     kernel_start_m: float = 0.8        # ... at the first iteration, shrunk by `kernel_decay` per iteration
-    kernel_decay: float = 0.6
+    kernel_decay: float = 0.75
     max_points: int = 4096             # scan points used (a random subset, or padding): one compile
     damping: float = 1e-3              # initial LM damping (times diag(H))
-    min_valid_fraction: float = 0.5    # ok needs at least this fraction of the points inside the map
-    max_rms_m: float = 0.12            # ... and their RMS SDF (each clipped at `rms_clip_m`) at most this
+    min_valid_fraction: float = 0.8    # ok needs at least this fraction of the points inside the map
+    max_rms_m: float = 0.06            # ... and their RMS SDF (each clipped at `rms_clip_m`) at most this
     rms_clip_m: float = 1.0
-    step_tol_m: float = 1e-3           # converged: a kept step below this (translation, and rotation x 10 m)
+    step_tol_m: float = 1e-3           # converged: a step below this (translation, and rotation x 10 m)
     seed: int = 0                      # of the subsample
+    search_m: float = 0.0              # > 0: first try a grid of horizontal shifts within +-search_m (see below),
+    search_steps: int = 5              # ... search_steps x search_steps of them (map x, y)
+    search_yaw_deg: float = 20.0       # ... each also turned about the vertical within +-search_yaw_deg
+    search_yaw_steps: int = 9          # ... in this many steps
+    search_points: int = 512           # ... each judged on this many of the points
+    search_kernel_m: float = 0.3       # ... by the Geman-McClure cost at this scale
+    search_stages: int = 2             # ... then again around the best, the grid shrunk to its spacing
 
 
 class TrackResult(NamedTuple):
@@ -70,7 +85,7 @@ class Refined(NamedTuple):
     valid_fraction: jax.Array
     rms_m: jax.Array
     iterations: jax.Array
-    converged: jax.Array    # the last kept step was below step_tol_m
+    converged: jax.Array    # the last step was below step_tol_m (at the final kernel scale)
 
 
 def so3_exp(w):
@@ -128,18 +143,64 @@ def _lm_step(sdf_fn, points, mask, opts: TrackOptions, carry):
     small = jnp.maximum(jnp.linalg.norm(delta[3:]), 10.0 * jnp.linalg.norm(delta[:3])) < opts.step_tol_m
     R, t = jnp.where(better, R2, R), jnp.where(better, t2, t)
     lam = jnp.where(better, jnp.maximum(lam / 3.0, 1e-7), lam * 4.0)
-    # converged: a tiny kept step once the kernel is at its final scale, or damping so large nothing moves
-    done = (better & small & (k <= opts.kernel_m * 1.0001)) | (lam > 1e6)
+    # converged: a tiny step (kept or not: at the optimum float32 noise decides) once the kernel is at its
+    # final scale, or damping so large that nothing moves
+    done = (small & (k <= opts.kernel_m * 1.0001)) | (lam > 1e6)
     return i + 1, R, t, lam, done
 
 
-def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOptions()) -> Refined:
+def search_grid(opts: TrackOptions) -> tuple[np.ndarray, np.ndarray]:
+    """(shifts [S, 3] in units of search_m, yaws [S] in units of search_yaw_deg) of the search, the
+    smallest moves first (the guess itself wins a tie)."""
+    u = np.linspace(-1.0, 1.0, opts.search_steps)
+    a = np.linspace(-1.0, 1.0, opts.search_yaw_steps) if opts.search_yaw_steps > 1 else np.zeros(1)
+    gy, gx, ga = np.meshgrid(u, u, a, indexing="ij")
+    shifts = np.stack([gx.ravel(), gy.ravel(), np.zeros(gx.size)], 1)
+    order = np.lexsort((np.linalg.norm(shifts, axis=1), np.abs(ga.ravel())))
+    return shifts[order].astype(np.float32), ga.ravel()[order].astype(np.float32)
+
+
+def grid_search(sdf_fn, points_s, mask, R, t, search, opts: TrackOptions):
+    """(R, t) turned about the sensor's vertical and shifted by the grid's move (`search_grid` scaled by
+    search = (half-width m, yaw half-width rad)) whose robust cost on the first `search_points` points is lowest."""
+    k = min(opts.search_points, points_s.shape[0])
+    shifts, yaws = (jnp.asarray(g) for g in search_grid(opts))
+    shifts, yaws = shifts * search[0], yaws * search[1]
+    Rs = jax.vmap(lambda y: so3_exp(jnp.array([0.0, 0.0, 1.0]) * y) @ R)(yaws)           # [S, 3, 3]
+    x = jnp.einsum("sij,kj->ski", Rs, points_s[:k]) + (t + shifts)[:, None]
+    r, valid = sdf_fn(x.reshape(-1, 3))
+    r, valid = r.reshape(len(yaws), k), valid.reshape(len(yaws), k)
+    finite = jnp.isfinite(r)
+    cost = jax.vmap(gm_cost, in_axes=(0, 0, None, None))(jnp.where(finite, r, 0.0), valid & finite, mask[:k],
+                                                          opts.search_kernel_m)
+    best = jnp.argmin(cost)
+    return Rs[best], t + shifts[best]
+
+
+def staged_search(sdf_fn, points_s, mask, R, t, search, opts: TrackOptions):
+    """`grid_search` `search_stages` times, each between the grid points of the one before."""
+    shrink = jnp.array([1.0 / max(opts.search_steps - 1, 1), 1.0 / max(opts.search_yaw_steps - 1, 1)])
+    for _ in range(opts.search_stages):
+        R, t = grid_search(sdf_fn, points_s, mask, R, t, search, opts)
+        search = search * shrink
+    return R, t
+
+
+def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOptions(), search=None) -> Refined:
     """Pure LM refinement of T = (R0, t0) so that sdf_fn(R p + t) ~ 0 for the `mask`ed points.
 
     sdf_fn: map-frame points [M, 3] -> (sdf [M], valid [M] bool), differentiable in the points;
-    points_s [M, 3] float32 sensor frame; mask [M] bool (padding False); R0 [3, 3], t0 [3] map frame."""
+    points_s [M, 3] float32 sensor frame, in random order (the search uses the first rows); mask [M] bool
+    (padding False); R0 [3, 3], t0 [3] map frame. search: the search's widths, [2] (half-width m, yaw
+    half-width rad; may be traced; a half-width of 0 skips the search), or None: opts'; the search is
+    compiled in when opts.search_m > 0."""
     points_s = jnp.asarray(points_s, jnp.float32)
     R0, t0 = jnp.asarray(R0, jnp.float32), jnp.asarray(t0, jnp.float32)
+    if opts.search_m > 0:
+        if search is None:
+            search = jnp.array([opts.search_m, np.deg2rad(opts.search_yaw_deg)], jnp.float32)
+        R0, t0 = jax.lax.cond(search[0] > 0, functools.partial(staged_search, sdf_fn, points_s, mask, opts=opts),
+                              lambda R, t, s: (R, t), R0, t0, search)
     step = functools.partial(_lm_step, sdf_fn, points_s, mask, opts)
     init = (jnp.int32(0), R0, t0, jnp.float32(opts.damping), jnp.bool_(False))
     i, R, t, _, done = jax.lax.while_loop(lambda c: (c[0] < opts.iterations) & ~c[4], step, init)
@@ -152,17 +213,17 @@ def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOption
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0) -> Refined:
-    """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)."""
-    return refine_pose(lambda x: query(static, state, x), points_s, mask, R0, t0, opts)
+def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search) -> Refined:
+    """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)
+    (the search's widths are the traced `search`; a half-width of 0 skips it)."""
+    return refine_pose(lambda x: query(static, state, x), points_s, mask, R0, t0, opts, search)
 
 
 def subsample(points_s, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(points [n, 3] float32, mask [n] bool): a random subset of n rows of points_s [N, 3], or all of
-    them padded with zero rows (mask False)."""
+    """(points [n, 3] float32, mask [n] bool): a random subset of n rows of points_s [N, 3] (or all of
+    them, padded with zero rows, mask False), in random order."""
     pts = np.asarray(points_s, np.float32).reshape(-1, 3)
-    if len(pts) > n:
-        pts = pts[np.sort(np.random.default_rng(seed).choice(len(pts), n, replace=False))]
+    pts = pts[np.random.default_rng(seed).permutation(len(pts))[:n]]
     out = np.zeros((n, 3), np.float32)
     out[:len(pts)] = pts
     return out, np.arange(n) < len(pts)
@@ -177,7 +238,10 @@ def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOp
         return TrackResult(T_init.copy(), False, 0.0, float("inf"), 0)
     origin = origin_world(static, state)
     t0 = (T_init[:3, 3] - origin).astype(np.float32)
-    out = jax.device_get(track_program(static, opts, state, pts, mask, T_init[:3, :3].astype(np.float32), t0))
+    flags = dataclasses.replace(opts, search_m=1.0, search_yaw_deg=0.0)  # one compile for any widths, and none
+    widths = np.array([max(opts.search_m, 0.0), np.deg2rad(opts.search_yaw_deg)], np.float32)
+    out = jax.device_get(track_program(static, flags, state, pts, mask, T_init[:3, :3].astype(np.float32), t0,
+                                       widths))
     pose = np.eye(4)
     pose[:3, :3] = np.asarray(out.R, np.float64)
     pose[:3, 3] = np.asarray(out.t, np.float64) + origin

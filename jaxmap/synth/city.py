@@ -667,7 +667,7 @@ def _pedestrian_mesh(peds):
 def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
                   noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
                   pedestrians: bool = False, long: bool = False, layout: str = "grid", traffic: int = 0,
-                  realistic: str | tuple = ()) -> dict:
+                  realistic: str | tuple = (), lane_shift_m: float = 0.0, start_m: float = 0.0) -> dict:
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
@@ -686,6 +686,11 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
              scans, never in the ground truth; written to moving_objects.json (grid and suburb, not long).
     realistic: real-sensor artifacts, "all" or any of REALISTIC ("mixed,dropout,outliers,beam_offsets"; see
                the module docstring).
+    lane_shift_m, start_m: a second drive through the same city (grid and small loops, not long or suburb):
+               the vehicle drives the loop shifted outward by lane_shift_m (negative: towards the street's
+               centre line; the corner radius changes with it) and starts start_m metres along it; the scene
+               (parked cars included) is the one of the unshifted drive, so a map of one drive localises the
+               other (`jaxmap localize`).
     The GT points (gt_points.ply) are samples at gt_density (1000 per m^2) of the static surfaces within
     1 m of an observation (any frame's scan, without noise or pedestrians), hidden surfaces removed, with
     normals and a class per point (CITY_CLASSES, names in meta.json "gt": "classes").
@@ -727,8 +732,14 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         off = P.lane_offset
         path = LoopPath(P.street_x + off, P.street_y + off, P.corner_radius)
     V, F, obj, scene = suburb.build_suburb(P, seed, path) if layout == "suburb" else build_city(P, seed, path)
+    if lane_shift_m or start_m:
+        if long or layout != "grid":
+            raise ValueError("lane_shift_m and start_m are for the grid loop (default and small presets)")
+        if P.corner_radius + lane_shift_m <= 0.5:
+            raise ValueError(f"lane_shift_m {lane_shift_m:g} leaves no corner (radius {P.corner_radius:g} m)")
+        path = LoopPath(path.hx + lane_shift_m, path.hy + lane_shift_m, P.corner_radius + lane_shift_m)
     if not long:
-        T_wl = lidar_poses(path, n_frames)
+        T_wl = _poses_at(path, [start_m + i * path.length / n_frames for i in range(n_frames)])
         spacing = path.length / n_frames
     Tr = kitti_tr()
 
@@ -831,7 +842,8 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
                         "driven_length_m": round(spacing * (n_frames - 1), 3), "closed_loop": False,
                         "waypoints": C.rounded(_snake_waypoints(P), 3)} if long else
                        {"loop_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
-                        "closed_loop": True}),
+                        "closed_loop": True, **({"lane_shift_m": float(lane_shift_m), "start_m": float(start_m)}
+                                                if lane_shift_m or start_m else {})}),
         "calib_Tr": C.rounded(Tr[:3].reshape(-1), 12),
         "objects": kinds, "pedestrians": (P.pedestrians if pedestrians else 0),
         "gt": {"mesh_triangles": int(len(F)), "points": int(len(gt_pts)),
