@@ -64,9 +64,10 @@ class FrontEndStep:
         mapper = self.mapper
         try:
             r = self.fe.add_frame(frame.points)
-            # the odometry's own motion of the step just made, which loop corrections do not touch
-            self.odometry.append(frame.pose.copy() if not self.odometry
-                                 else compose(self.odometry[-1], r.odometry_rel))
+            # the odometry's own motion of the step just made, which loop corrections do not touch (a front
+            # end that does not report it: its odometry's velocity)
+            rel = r.odometry_rel if r.odometry_rel is not None else self.fe.odometry.velocity
+            self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], rel))
             if r.is_keyframe:
                 mapper.add_frame(frame.points, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end")
                 if r.optimized:
