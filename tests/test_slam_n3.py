@@ -101,3 +101,26 @@ def test_online_n3_map_follows_the_loop_correction(noisy_small_city, tmp_path):
     assert out["metrics"]["chamfer_l1_cm"] < 8.3, out["metrics"]
     fit = _frame_fit(tmp_path / "run", noisy_small_city, n3cfg)
     assert fit.max() < 0.022, fit
+
+
+def test_forget_frames_removes_exactly_those_pairs():
+    """`window.forget_frames`: the pairs of the dropped frames leave their blocks, the others move to the
+    front in order, counts shrink, and a block that lost pairs restarts its stream at its count (so the
+    reservoir fills the freed room before it replaces anything)."""
+    import jax.numpy as jnp
+
+    from jaxmap.n3 import window
+
+    st = window.create(3, 6, 8)
+    frames = jnp.array([[0, 1, 2, 1, 0, -1], [2, 2, 2, 2, 2, 2], [1, 1, -1, -1, -1, -1]], jnp.int32)
+    st = st.replace(count=jnp.array([5, 6, 2], jnp.int32), received=jnp.array([9, 40, 2], jnp.int32), frame=frames,
+                    pairs=jnp.arange(3 * 6 * 4, dtype=jnp.float32).reshape(3, 6, 4))
+    drop = np.zeros(4, bool)
+    drop[1] = True
+    new, removed = window.forget_frames(st, drop)
+    assert int(removed) == 4
+    np.testing.assert_array_equal(np.asarray(new.count), [3, 6, 0])
+    np.testing.assert_array_equal(np.asarray(new.received), [3, 40, 0])
+    np.testing.assert_array_equal(np.asarray(new.frame)[0, :3], [0, 2, 0])
+    np.testing.assert_array_equal(np.asarray(new.pairs)[0, :3, 0], [0.0, 8.0, 16.0])   # pairs 0, 2, 4 of block 0
+    np.testing.assert_array_equal(np.asarray(new.pairs)[1], np.asarray(st.pairs)[1])    # untouched block
