@@ -90,10 +90,10 @@ def main(args) -> int:
             _write(out, "bench.json", {"odometry": res_odo})
             print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
             return 0
-    res = slam_against_references(cfg, out)
+    res = (n3_slam_against_references if cfg.map_kind == "n3" else slam_against_references)(cfg, out)
     if res_odo is not None:
         res["odometry"] = res_odo
-    _print(res)
+    (_print_n3 if cfg.map_kind == "n3" else _print)(res)
     _write(out, "bench.json", res)
     print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
     return 0
@@ -117,6 +117,63 @@ def slam_against_references(cfg, out: str) -> dict:
             "recon": {"GT poses": m_gt.get("metrics", {}), "odometry poses": m_od.get("metrics", {}),
                       "slam (remapped)": slam.get("metrics", {})},
             "sizes": {k: slam[k] for k in ("map_bytes", "store_bytes", "keyframes")}}
+
+
+def n3_slam_against_references(cfg, out: str) -> dict:
+    """`jaxmap slam` with map_kind n3, and the N3 maps of the same frames with the true poses (`jaxmap
+    map`, run first: it pays the frame program's compile) and with the odometry alone. Seconds per frame
+    are the wall-clock of each frame loop less its compiling, over the frames."""
+    from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.n3.run import map_sequence
+    from jaxmap.slam.n3slam import n3_map_config
+    from jaxmap.slam.run import n3_from_poses, run_slam
+
+    load = os.getloadavg()
+    gt = map_sequence(n3_map_config(cfg, os.path.join(out, "n3_gt")), os.path.join(out, "n3_gt"))
+    slam = run_slam(cfg, cfg.output)
+    seq = open_run_sequence(cfg)
+    odo = n3_from_poses(cfg, seq, np.asarray(slam_odometry(cfg.output)), os.path.join(out, "n3_odometry"), True,
+                        "odometry poses")
+
+    def per_frame(r):
+        return (r["wall_s"] - r.get("compile_s", 0.0)) / max(r["frames_run"], 1)
+
+    return {"frames": slam["frames"], "keyframes": slam["keyframes"], "loops": slam["loops"],
+            "ate": {"odometry": slam.get("ate_odometry"), "slam": slam.get("ate_slam")},
+            "recon": {"GT poses (jaxmap map)": gt.get("metrics", {}), "odometry poses": odo.get("metrics", {}),
+                      "slam (online)": slam.get("metrics", {})},
+            "s_per_frame": {"GT poses (jaxmap map)": per_frame(gt), "slam (online)": per_frame(slam)},
+            "step": slam["step"], "tracked": [slam["tracked_ok"], slam["tracked_frames"]],
+            "loop_map_s": slam["loop_map_s"], "load": [load, os.getloadavg()],
+            "config": {k: getattr(cfg, k) for k in ("n3_config", "n3_track", "n3_loop", "n3_loop_min_move_m")}}
+
+
+def _print_n3(res: dict) -> None:
+    print(f"\njaxmap slam (map_kind n3) on {res['frames']} frames, {res['config']}")
+    print(f"{'trajectory (ATE)':22s} {'RMSE cm':>8s} {'mean cm':>8s} {'max cm':>7s} {'rot deg':>8s}")
+    for name, a in res["ate"].items():
+        if a:
+            print(f"{name:22s} {100 * a['rmse_m']:8.2f} {100 * a['mean_m']:8.2f} {100 * a['max_m']:7.2f} "
+                  f"{a['rot_rmse_deg']:8.3f}")
+    print()
+    print_map_table(res["recon"])
+    r = res["recon"]
+    if r["slam (online)"] and r["GT poses (jaxmap map)"]:
+        print(f"slam / GT-pose C-L1 = {r['slam (online)']['chamfer_l1_cm'] / r['GT poses (jaxmap map)']['chamfer_l1_cm']:.3f}"
+              " (target <= 1.15)")
+    sp = res["s_per_frame"]
+    print(f"s/frame (wall less compiling): GT poses {sp['GT poses (jaxmap map)']:.2f}, slam {sp['slam (online)']:.2f} "
+          f"= {sp['slam (online)'] / sp['GT poses (jaxmap map)']:.2f}x (target <= 1.5); load {res['load'][0][0]:.1f} "
+          f"-> {res['load'][1][0]:.1f}")
+    st = res["step"]
+    print(f"slam medians per frame: odometry {st['median_odometry_s']:.2f} s, tracking {st['median_refine_s']:.2f} s, "
+          f"N3 frame {st['median_map_s']:.2f} s, loop search {st['median_loop_s']:.2f} s; tracked ok "
+          f"{res['tracked'][0]} of {res['tracked'][1]}")
+    moved = [lp for lp in res["loops"] if lp["reintegrated"]]
+    print(f"{len(res['loops'])} loops; the map followed {len(moved)} of them in {res['loop_map_s']:.1f} s in all")
+    for lp in moved:
+        print(f"  loop at frame {lp['frame']}: frames moved up to {100 * lp['max_move_m']:.1f} cm, {lp['reintegrated']} "
+              f"of {lp['frames']} re-integrated ({lp['mode']}) in {lp['map_s']:.1f} s")
 
 
 KINECT_ROOM = "data/room300_kinect"

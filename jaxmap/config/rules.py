@@ -14,7 +14,8 @@ from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridCon
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
 from jaxmap.config.prior import EncoderConfig
-from jaxmap.config.slam import EDGE_INFORMATION, ODOMETRY_METHODS, FrontEndConfig, OdometryConfig, SlamConfig
+from jaxmap.config.slam import (EDGE_INFORMATION, MAP_KINDS, N3_LOOP_MODES, ODOMETRY_METHODS, FrontEndConfig,
+                               OdometryConfig, SlamConfig)
 from jaxmap.errors import ConfigError
 
 DATA_KINDS = ("auto", "kitti", "depth", "rosbag", "tum", "replica", "las")
@@ -91,6 +92,15 @@ def host_preprocess_checks(c: Any, x: str):
             "set it to false")
 
 
+def _slam_checks(c: SlamConfig, x: str):
+    if c.map_kind == "n3" and not c.n3_config:
+        yield (f"{x}map_kind", f"{x}n3_config"), (
+            f"{x}map_kind=n3 maps into an N3 map: set {x}n3_config to its config (e.g. configs/city.yaml)")
+    if c.map_kind == "n3" and c.external_poses:
+        yield (f"{x}map_kind", f"{x}external_poses"), (
+            f"{x}external_poses drives the imt map only: use {x}map_kind=imt with it")
+
+
 def _data_checks(d: DataConfig, x: str):
     if not (d.end_frame == -1 or d.end_frame > d.begin_frame):
         yield (f"{x}end_frame", f"{x}begin_frame"), (
@@ -163,6 +173,8 @@ RULES: dict[type, dict[str, Rule]] = {
     ImtConfig: {"output": NONEMPTY},
     OdometryConfig: {"method": one_of(*ODOMETRY_METHODS), "max_iter": at_least(1), "normals_k": at_least(3)},
     FrontEndConfig: {"edge_information": one_of(*EDGE_INFORMATION)},
+    SlamConfig: {"map_kind": one_of(*MAP_KINDS), "n3_loop": one_of(*N3_LOOP_MODES),
+                 "n3_loop_min_move_m": at_least(0.0), "n3_track_min_valid": within(0.0, 1.0)},
     EncoderConfig: {"inputs": one_of("joint", "split")},
 }
 
@@ -171,7 +183,7 @@ CHECKS: dict[type, list[Callable[[Any, str], Any]]] = {
     ImtConfig: [host_preprocess_checks],
     DataConfig: [_data_checks],
     PreprocessConfig: [_preprocess_checks],
-    SlamConfig: [host_preprocess_checks],
+    SlamConfig: [host_preprocess_checks, _slam_checks],
 }
 
 

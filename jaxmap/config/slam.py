@@ -9,6 +9,8 @@ from jaxmap.config.schema import (DataConfig, EvalConfig, ImtConfig, LatentMapCo
 
 ODOMETRY_METHODS = ("icp", "kiss_icp")
 EDGE_INFORMATION = ("isotropic", "icp")
+MAP_KINDS = ("imt", "n3")
+N3_LOOP_MODES = ("rebuild", "moved", "none")
 
 
 @dataclass(frozen=True)
@@ -179,7 +181,18 @@ class SlamConfig:
     frontend: FrontEndConfig = field(default_factory=FrontEndConfig)
     external_poses: str = ""          # directory of pose snapshots replacing the front end ("" = our own)
     mesh_at_loops: bool = False       # write meshes before and after each loop closure (a whole-map mesh each: slow)
-    n3_config: str = ""               # also build an N3 map from the optimised poses with this config
+    n3_config: str = ""               # imt: also build an N3 map from the optimised poses with this config;
+                                      # n3: the N3 map's config (its MapConfig; data and output come from here)
+    map_kind: str = "imt"             # imt: the transformable latent map, remapped at loops; n3: the N3 map of
+                                      # n3_config, mapped online at the tracked poses (docs/slam.md)
+    n3_track: bool = True             # n3: refine each odometry pose by tracking the scan against the N3 map
+    n3_track_min_valid: float = 0.93  # n3: adopt a tracked pose only when this fraction of the scan's points lies in
+                                      # the map (a scan mostly beyond the map's edge tracks biased: docs/slam.md)
+    n3_loop: str = "moved"            # n3: how the map follows a loop correction: rebuild (every frame again at
+                                      # the optimised poses), moved (re-add the frames that moved, their old
+                                      # training pairs removed), none (docs/slam.md)
+    n3_loop_min_move_m: float = 0.02  # n3: a loop that moves no frame's position more than this leaves the map
+                                      # as it is; n3_loop moved re-adds the frames that moved more
     output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
 

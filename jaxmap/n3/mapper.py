@@ -18,7 +18,11 @@ from jaxmap.config import MapConfig
 from jaxmap.frame_loop import medians
 from jaxmap.n3 import core, scan
 from jaxmap.n3.query import extract_mesh_of, query_world
+from jaxmap.n3 import window
+from jaxmap.sizes import pow2
 from jaxmap.viewer import copy_arrays
+
+_forget_jit = jax.jit(window.forget_frames)
 
 
 class N3Mapper:
@@ -98,6 +102,29 @@ class N3Mapper:
         self.frames += 1
         self.timings.append(info)
         return info
+
+    def reset(self) -> None:
+        """Forget the map: an empty state of the current capacities (so the compiled frame program is
+        reused), frame 0, the origin set again by the next frame. The timings are kept."""
+        caps = core.Capacities.of(self.state)
+        self.state = None  # the old arrays go before the new ones are allocated
+        self.state = core.init_state(self.static, self.cfg, caps)
+        self.frames = 0
+        self._origin = core.origin_world(self.static, self.state)
+
+    def forget_frames(self, frames) -> int:
+        """Remove from the pair store the pairs of the given frames (0-based, in the order `add_frame`
+        added them since the start or the last `reset`), e.g. before adding them again at corrected
+        poses; the features they trained stay until training moves them. Returns the pairs removed
+        (0 for the replay / keyframe ablations, whose flat pool is left as it is)."""
+        frames = [int(f) for f in frames if 0 <= int(f) < self.frames]
+        if self.static.uses_pool or not frames:
+            return 0
+        drop = np.zeros(pow2(self.frames), bool)
+        drop[frames] = True
+        store, removed = _forget_jit(self.state.store, drop)
+        self.state = self.state.replace(store=store)
+        return int(removed)
 
     def frames_held(self, min_frames: int = 10) -> float:
         """Median over the window's voxels observed by >= min_frames frames (since they entered the

@@ -321,6 +321,26 @@ def frames_held_fraction(store: PairStore, ids, n, min_frames: int = 1):
     return jnp.nanmedian(frac)
 
 
+def forget_frames(store: PairStore, drop):
+    """The store without the pairs of the frames `drop` [F] bool names (indexed by the frame number the
+    pairs carry; frames >= F are kept): each block's other pairs move to its front, in order. A block
+    that lost pairs restarts its stream at its count (so the reservoir fills the room first). The
+    window list is left as it is: a block left empty trains nothing (count 0).
+    Returns (store, [] int32 pairs removed)."""
+    p, f_max = store.block_size, drop.shape[0]
+    held = jnp.arange(p)[None, :] < store.count[:, None]                       # [S, P]
+    f = store.frame
+    gone = held & (f >= 0) & (f < f_max) & drop[jnp.clip(f, 0, f_max - 1)]
+    keep = held & ~gone
+    order = jnp.argsort(~keep, axis=1, stable=True)                            # kept pairs first, in order
+    pairs = jnp.take_along_axis(store.pairs, order[..., None], axis=1)
+    count = jnp.sum(keep, axis=1, dtype=jnp.int32)
+    lost = jnp.any(gone, axis=1)
+    return store.replace(pairs=pairs, surface=jnp.take_along_axis(store.surface, order, axis=1),
+                         frame=jnp.take_along_axis(store.frame, order, axis=1), count=count,
+                         received=jnp.where(lost, count, store.received)), jnp.sum(gone, dtype=jnp.int32)
+
+
 def total_pairs(store: PairStore):
     """[] int32: pairs held by the store (what the memory bound is about)."""
     return store.count.sum()

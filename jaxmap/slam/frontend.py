@@ -60,7 +60,9 @@ class FrameResult:
     optimized:      True when a loop was accepted and the pose graph optimised in this step
     keyframe_poses: [K,4,4] all keyframe poses after this step
     odometry_ok:    False when ICP odometry failed and the motion prior was kept
-    timings:        seconds: odometry_s, loop_s, optimize_s
+    timings:        seconds: odometry_s, loop_s, optimize_s (and refine_s with a `refine`)
+    odometry_rel:   [4,4] the odometry's own motion from the previous frame (before any refinement)
+    refined:        True when `refine` replaced the odometry pose of this frame
     """
     index: int
     pose: np.ndarray
@@ -71,6 +73,8 @@ class FrameResult:
     keyframe_poses: np.ndarray
     odometry_ok: bool
     timings: dict
+    odometry_rel: np.ndarray | None = None
+    refined: bool = False
 
 
 class FrontEnd:
@@ -114,15 +118,27 @@ class FrontEnd:
         return moved or (cfg.keyframe_min_rotation_deg > 0 and np.degrees(ang) >= cfg.keyframe_min_rotation_deg)
 
     # ---------------------------------------------------------------------------------------------
-    def add_frame(self, points_s: np.ndarray) -> FrameResult:
-        """Process the next scan. points_s: [N,3] float32, sensor frame. Returns a FrameResult."""
+    def add_frame(self, points_s: np.ndarray, refine=None) -> FrameResult:
+        """Process the next scan. points_s: [N,3] float32, sensor frame. Returns a FrameResult.
+
+        refine: None, or fn(pose guess [4,4]) -> a better pose [4,4] or None (keep the guess), called
+        after the odometry step and before the keyframe decision (e.g. tracking against a map): the
+        refined pose becomes the frame's pose, the odometry continues from it (its next prediction and
+        the keyframe's graph node use it) and the odometry edge keeps the ICP's information."""
         cfg = self.cfg
         index = len(self.frame_ref)
         timings = {"odometry_s": 0.0, "loop_s": 0.0, "optimize_s": 0.0}
         t0 = time.perf_counter()
         step = self.odometry.step(points_s)
         timings["odometry_s"] = time.perf_counter() - t0
-        pose = step.pose
+        rel = self.odometry.velocity.copy()
+        pose, refined = step.pose, False
+        if refine is not None:
+            t0 = time.perf_counter()
+            better = refine(step.pose)
+            timings["refine_s"] = time.perf_counter() - t0
+            if better is not None:
+                pose, refined = self._adopt(step.pose, better), True
         if index > 0:
             info = step.information if step.ok else WEAK_INFORMATION
             # (+ a tiny ridge: a degenerate ICP information must not make the inverse blow up or fail)
@@ -130,7 +146,8 @@ class FrontEnd:
         if not self._is_keyframe(index, pose):
             k = len(self.graph) - 1
             self.frame_ref.append((k, compose(se3_inverse(self.graph.poses[k]), pose)))
-            return FrameResult(index, pose, False, -1, None, False, self.keyframe_poses(), step.ok, timings)
+            return FrameResult(index, pose, False, -1, None, False, self.keyframe_poses(), step.ok, timings, rel,
+                               refined)
 
         scan = self.odometry.last
         k = self.graph.add_node(pose)
@@ -154,7 +171,16 @@ class FrontEnd:
                 timings["optimize_s"] = time.perf_counter() - t0
                 optimized = True
                 self._cooldown = cfg.loop_cooldown
-        return FrameResult(index, pose.copy(), True, k, loop, optimized, self.keyframe_poses(), step.ok, timings)
+        return FrameResult(index, pose.copy(), True, k, loop, optimized, self.keyframe_poses(), step.ok, timings,
+                           rel, refined)
+
+    def _adopt(self, guess: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Make `pose` the odometry's current pose in place of its `guess`: the world correction moves
+        the odometry (as a loop correction does) and the motion prior takes the refinement in."""
+        pose = orthonormalize(np.asarray(pose, np.float64))
+        self.odometry.correct(compose(pose, se3_inverse(guess)))
+        self.odometry.velocity = compose(self.odometry.velocity, se3_inverse(guess) @ pose)
+        return pose
 
     def _link_keyframe(self, k: int) -> None:
         """Add the odometry edge (k-1, k): the odometry motion between the two keyframes, with the

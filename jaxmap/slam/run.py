@@ -8,6 +8,8 @@ Per frame of the sequence (its poses.txt is only used for the first pose and for
   3. when a loop is accepted and the graph optimised, the latent map is remapped to the optimised
      keyframe poses (`jaxmap.imt.remap`: only the keyframes whose pose moved are touched); with
      `mesh_at_loops` a mesh is written before and after (`loop_<n>_before.ply`, `loop_<n>_after.ply`).
+With `map_kind: n3` the map is instead the N3 map of `n3_config`, mapped online at the poses the front
+end and tracking against that map give, and following each loop correction (`jaxmap.slam.n3slam`).
 With `external_poses: DIR` the front end is replaced by pose-graph snapshots of another SLAM system
 (one TUM or KITTI file per keyframe update, in natural order, as ORB-SLAM2 writes them; snapshot i
 holds the poses of the first n_i frames of the selection): new frames are fused with their snapshot
@@ -17,7 +19,8 @@ A run directory holds config.yaml, checkpoint/ (latent map + keyframe store), me
 trajectory_kitti.txt and trajectory_tum.txt (every frame, and odometry_kitti.txt: odometry alone),
 the loop meshes, metrics.json (ATE of odometry and of the optimised trajectory against the
 sequence's poses, reconstruction metrics when the sequence has ground truth, per-loop timings) and,
-with `n3_config`, an N3 map built from the optimised poses in n3/.
+with `n3_config` (map_kind imt), an N3 map built from the optimised poses in n3/. With map_kind n3,
+checkpoint/ is the N3 map (`N3Mapper.load`), n3_config.yaml its resolved config, timing.json its frames.
 
 With `--view` a live browser viewer (`jaxmap.viewer`) shows each frame's points, the trajectory (redrawn
 after each pose-graph optimisation), the loop closures and a mesh re-extracted in a background thread.
@@ -32,14 +35,16 @@ import time
 
 import numpy as np
 
-from jaxmap.config import MapConfig, SlamConfig, load_config, save_config
+from jaxmap.config import SlamConfig, save_config
 from jaxmap.errors import DataError, JaxmapError
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
+from jaxmap.n3.core import COMPILE_SECONDS
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.slam.frontend import FrontEnd
+from jaxmap.slam.n3slam import n3_checkpoint, n3_map_config, open_n3_mapper, run_n3_frontend
 from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_tum
 
 log = logging.getLogger("jaxmap")
@@ -59,9 +64,10 @@ class FrontEndStep:
         mapper = self.mapper
         try:
             r = self.fe.add_frame(frame.points)
-            # the velocity of the step just made, which loop corrections do not touch
-            self.odometry.append(frame.pose.copy() if not self.odometry
-                                 else compose(self.odometry[-1], self.fe.odometry.velocity))
+            # the odometry's own motion of the step just made, which loop corrections do not touch (a front
+            # end that does not report it: its odometry's velocity)
+            rel = r.odometry_rel if r.odometry_rel is not None else self.fe.odometry.velocity
+            self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], rel))
             if r.is_keyframe:
                 mapper.add_frame(frame.points, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end")
                 if r.optimized:
@@ -195,6 +201,8 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     t_start = time.perf_counter()
     os.makedirs(out_dir, exist_ok=True)
     save_config(cfg, os.path.join(out_dir, "config.yaml"))
+    if cfg.map_kind == "n3":
+        return run_slam_n3(cfg, out_dir, progress, evaluate, view)
     icfg = cfg.imt()
     seq = open_run_sequence(icfg)
     mapper = ImtMapper(icfg)
@@ -209,7 +217,35 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     rec = finish_run(mapper, icfg, out_dir, loop, evaluate=evaluate, viewer=viewer)
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     if cfg.n3_config:
-        out["n3"] = _n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
+        out["n3"] = n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
+    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
+        json.dump(out, f, default=_jsonable)
+    return out
+
+
+def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
+                view: dict | None = None, track=None) -> dict:
+    """`map_kind: n3` (`jaxmap.slam.n3slam`): the N3 map of `n3_config`, mapped online at the tracked poses
+    and following each loop correction. Leaves what `run_slam` does, the map being N3's (checkpoint/
+    `N3Mapper.load`s; n3_config.yaml is the map's resolved config). track: a tracker in place of
+    `jaxmap.slam.track.track_scan` (tests)."""
+    seq = open_run_sequence(cfg)
+    n_compiles = len(COMPILE_SECONDS)
+    mapper = open_n3_mapper(cfg, out_dir, seq)
+    save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
+    viewer = open_viewer(view, mapper)
+    res = run_n3_frontend(cfg, seq, mapper, progress, viewer=viewer, track=track)
+    n3_checkpoint(mapper, out_dir)
+    traj = np.asarray(res["trajectory"])
+    tracked = [t for t in res["tracking"] if t.get("tracked")]
+    out = {"run": out_dir, "map_kind": "n3", "frames": len(seq), "keyframes": len(res["keyframe_frames"]),
+           "loops": res["loops"], "tracked_frames": len(tracked), "tracked_ok": sum(t["ok"] for t in tracked),
+           "loop_map_s": float(sum(lp["map_s"] for lp in res["loops"])), "tracking": res["tracking"],
+           "step": res["step_medians"],
+           **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
+    extra = {"compile_s": float(sum(COMPILE_SECONDS[n_compiles:])), "compiles": len(COMPILE_SECONDS) - n_compiles}
+    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer, extra=extra)
+    out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
         json.dump(out, f, default=_jsonable)
     return out
@@ -234,13 +270,10 @@ def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarra
     return out
 
 
-def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) -> dict:
-    """The N3 map of the same frames with the optimised poses (written as a KITTI pose file beside a
+def n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool, desc: str = "optimised poses") -> dict:
+    """The N3 map of the same frames at `poses` [N,4,4] (the optimised ones in `run_slam`) (written as a KITTI pose file beside a
     symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
-    d = cfg.data
-    ncfg = load_config(cfg.n3_config, [f"data.path={d.path}", f"data.begin_frame={d.begin_frame}",
-                                       f"data.end_frame={d.end_frame}", f"data.every_frame={d.every_frame}",
-                                       f"output={out_dir}"], schema=MapConfig)
+    ncfg = n3_map_config(cfg, out_dir)
     os.makedirs(out_dir, exist_ok=True)
     save_config(ncfg, os.path.join(out_dir, "config.yaml"))
     mapper = N3Mapper(ncfg)
@@ -249,7 +282,7 @@ def _n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool) ->
         return mapper.add_frame(frame.points, poses[frame.position]), poses[frame.position]
 
     loop = run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
-                      progress=Progress("n3 (optimised poses)", progress))
+                      progress=Progress(f"n3 ({desc})", progress))
     return finish_run(mapper, ncfg, out_dir, loop)
 
 
