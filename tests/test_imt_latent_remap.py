@@ -187,13 +187,25 @@ def test_the_latent_store_round_trips_and_says_which_setting_reads_it(prior, tmp
 
 
 def test_a_reencode_remap_runs_the_frame_programs_and_compiles_nothing(prior):
-    views, poses = views_and_poses(4, 7)
-    state, store, hints = fused(CELLS, prior, views, poses)
-    programs = core.step._cache_size()
+    """The first keyframe is the largest, and the map grows after it: the frames keep its padded size
+    (`core.frame_pad`), so the last capacity has a compiled shape for every keyframe, and a remap (one
+    keyframe moved, or a rebuild) calls only programs the frames compiled."""
+    rng = np.random.default_rng(7)
+    small = scene(rng, 900)
+    big = tuple(np.concatenate([a, b]) for a, b in zip(scene(rng), (small[0] + [3.0, 0.0, 0.0], small[1])))
+    worlds = [big] + [(small[0] + [0.0, 4.0 * k, 0.0], small[1]) for k in (1, 2, 3)]   # each adds new voxels
+    poses = np.asarray([make_pose(random_rotation(rng), rng.normal(size=3) * 0.3) for _ in range(4)])
+    views = [(transform_points(np.linalg.inv(P), w[0]), w[1] @ P[:3, :3]) for P, w in zip(poses, worlds)]
+    state, store, hints = fused(CELLS, prior, views, poses, capacity=8192)   # the first keyframe fits, then it grows
+    sizes = store.sizes(range(4))
+    assert state.map.table.capacity > 8192 and lm.bucket(sizes[0]) > lm.bucket(max(sizes[1:]))
+    programs, capacity = core.step._cache_size(), state.map.table.capacity
     new = poses.copy()
-    new[2] = make_pose(random_rotation(np.random.default_rng(8)), [0.05, 0.0, 0.0]) @ poses[2]
+    # a loop correction's few centimetres (a large move adds voxels, and a map that grows compiles its new size)
+    new[0] = make_pose(rotation_from_axis_angle(np.array([0.2, 0.1, 1.0]), 0.01), [0.03, 0.0, 0.0]) @ poses[0]
     state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)       # remove + fuse
-    assert changed == [2]
-    state, store, changed = core.remap(CELLS, state, store, prior, new[::-1].copy(), hints=hints)   # rebuild
-    assert changed == [0, 1, 2, 3]
+    assert changed == [0]
+    new[1:] = [make_pose(np.eye(3), [0.0, 0.02, 0.0]) @ P for P in new[1:]]
+    state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)       # rebuild
+    assert changed == [1, 2, 3] and state.map.table.capacity == capacity
     assert core.step._cache_size() == programs

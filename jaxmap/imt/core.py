@@ -293,6 +293,14 @@ def cell_batch(store: KeyframeStore, ids, poses, signs, n_pad: int, slots: int) 
                      lm.pad(slot, n_pad, np.int32), sg)
 
 
+def frame_pad(n: int, hints: dict) -> int:
+    """Padded cell count of a frame of n cells: `latent_map.bucket`, but never below the largest one so far
+    (kept in `hints`). Frames then compile one shape per map capacity instead of one per bucket, and the
+    last capacity's shape holds every keyframe, so a remap (`apply_keyframes`) compiles nothing."""
+    hints["frame_pad"] = max(lm.bucket(n), hints.get("frame_pad", 0))
+    return hints["frame_pad"]
+
+
 def integrate(static: ImtStatic, state: ImtState, store, prior, cells, pose, frame: int, hints: dict):
     """Keep a frame as a keyframe and fuse it, in one `step`.
 
@@ -301,9 +309,9 @@ def integrate(static: ImtStatic, state: ImtState, store, prior, cells, pose, fra
     are stored in the keyframe's sensor frame and the step encodes them as `store.cells_at` gives them
     back, as `remap` will. `LatentStore` (remap: transform): the step's local map is stored.
     Returns (state, store with the keyframe appended, StepStats)."""
+    n_pad = frame_pad(len(cells[2]), hints)
     if static.remap == "transform":
         pts, nrm, cnt = cells
-        n_pad = lm.bucket(len(cnt))
         sg = np.ones(FRAME_SLOTS, np.float32)
         batch = CellBatch(lm.pad(pts, n_pad, np.float32), lm.pad(nrm, n_pad, np.float32),
                           lm.pad(cnt, n_pad, np.float32), np.zeros(n_pad, np.int32), sg)
@@ -311,7 +319,7 @@ def integrate(static: ImtStatic, state: ImtState, store, prior, cells, pose, fra
         return state, store.add(frame, *local, pose), stats
     store = store.add(frame, *cells, pose)
     k = len(store) - 1
-    batch = cell_batch(store, [k], store.poses()[k:], [1.0], lm.bucket(len(cells[0])), FRAME_SLOTS)
+    batch = cell_batch(store, [k], store.poses()[k:], [1.0], n_pad, FRAME_SLOTS)
     state, stats, _ = run(static, state, prior, batch, hints)
     return state, store, stats
 

@@ -53,7 +53,9 @@ class ImtMapper:
         self.static = core.ImtStatic.from_config(cfg)
         self.state = core.init(self.static, cfg.map.initial_capacity, self.prior.latent_channels)
         self.store = self.static.new_store()   # KeyframeStore (remap: reencode) or LatentStore (transform)
-        self.hints: dict = {}     # padded cell count -> encode table size that sufficed (grown on overflow)
+        # what the programs learnt: padded cell count -> encode table size that sufficed (grown on overflow);
+        # ("compiled", map capacity, padded cell count) -> the step shapes run; "frame_pad" -> the frames' pad
+        self.hints: dict = {}
         self.timings: list[dict] = []
         self.remaps: list[dict] = []
 
