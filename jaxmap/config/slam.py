@@ -188,6 +188,7 @@ class SlamConfig:
     n3_track: bool = True             # n3: refine each odometry pose by tracking the scan against the N3 map
     n3_track_min_valid: float = 0.93  # n3: adopt a tracked pose only when this fraction of the scan's points lies in
                                       # the map (a scan mostly beyond the map's edge tracks biased: docs/slam.md)
+    n3_track_max_range_m: float = 0.0  # n3: track with the scan's points within this range only (0 = all)
     n3_loop: str = "moved"            # n3: how the map follows a loop correction: rebuild (every frame again at
                                       # the optimised poses), moved (re-add the frames that moved, their old
                                       # training pairs removed), none (docs/slam.md)

@@ -109,7 +109,10 @@ class N3SlamStep:
     def __call__(self, frame: SlamFrame) -> tuple[dict, np.ndarray]:
         try:
             # tracked with the map's own preprocessed points (cropped to its range, downsampled)
-            r = self.fe.add_frame(frame.points, refine=self._refine(frame.prepared[0]))
+            pts = frame.prepared[0]
+            if self.cfg.n3_track_max_range_m > 0:
+                pts = pts[np.linalg.norm(pts, axis=1) <= self.cfg.n3_track_max_range_m]
+            r = self.fe.add_frame(frame.points, refine=self._refine(pts))
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
             self.prepared.append(frame.prepared)
             self.mapped_at.append(r.pose.copy())
