@@ -22,9 +22,12 @@ def test_front_end_continues_from_a_refined_pose(small_city):
     """A refinement of frame 1 is the frame's pose, and frame 2's odometry starts from it: with frame 1
     moved 0.5 m by `refine`, frame 2 ends up 0.5 m from where the plain front end puts it (a front end
     that ignored the refinement would put it within centimetres of the plain one)."""
+    import dataclasses
+
     seq = open_sequence(str(small_city))
-    plain = FrontEnd(FrontEndConfig.lidar(), initial_pose=seq.poses[0])
-    fed = FrontEnd(FrontEndConfig.lidar(), initial_pose=seq.poses[0])
+    every = dataclasses.replace(FrontEndConfig.lidar(), keyframe_min_translation_m=0.0)   # a keyframe each frame
+    plain = FrontEnd(every, initial_pose=seq.poses[0])
+    fed = FrontEnd(every, initial_pose=seq.poses[0])
     poses = {}
     for i in range(3):
         pts = seq.frame(i).points
@@ -52,8 +55,8 @@ def test_map_kind_n3_needs_an_n3_config():
 
 @pytest.fixture(scope="module")
 def noisy_small_city(tmp_path_factory):
-    """The small city (15 frames, 4.7 m apart, a 71 m loop) with 2 cm range noise: ICP odometry drifts
-    8.5 cm, and the loop closure at frame 13 moves the frames by up to ~10 cm."""
+    """The small city (64 frames ~1 m apart, a 62 m loop) with 2 cm range noise: the odometry drifts
+    9.6 cm, and the loop closure at frame 56 moves the frames by up to ~5 cm."""
     from jaxmap.synth.city import generate_city
 
     out = tmp_path_factory.mktemp("city_small_noisy")
@@ -79,12 +82,12 @@ def _frame_fit(run_dir, data, n3cfg) -> np.ndarray:
 
 
 def test_online_n3_map_follows_the_loop_correction(noisy_small_city, tmp_path):
-    """`jaxmap slam` with map_kind n3 (odometry poses, no tracking) on the noisy small city: the loop
-    closure cuts the ATE (8.5 -> 3.3 cm), and the map follows it. Measured with this test's N3 settings
-    (20 iterations a frame): C-L1 7.44 cm with `n3_loop: moved`, 9.16 cm when the map stays at the poses
-    the frames were first mapped at (`n3_loop: none`), so the bound 8.3 cm fails a map that does not
-    follow. Every frame's points lie on the final map at the frame's final pose (largest per-frame median
-    |SDF| 1.65 cm; 1.82 cm with `none` at 20 iterations, 3.4 cm with the full config's 50)."""
+    """`jaxmap slam` with map_kind n3 (the LiDAR config's KISS-ICP odometry, no tracking) on the noisy
+    small city (64 frames at 10 Hz): the loop closure cuts the ATE (9.6 -> 8.2 cm), and the map follows
+    it. Measured with this test's N3 settings (20 iterations a frame): C-L1 5.52 cm with `n3_loop: moved`,
+    6.58 cm when the map stays at the poses the frames were first mapped at (`n3_loop: none`), so the
+    bound 6.0 cm fails a map that does not follow; every frame's points lie on the final map at the
+    frame's final pose (largest per-frame median |SDF| 1.78 cm, 2.08 cm with `none`)."""
     from jaxmap.config import save_config
     from jaxmap.slam.run import run_slam
 
@@ -94,13 +97,13 @@ def test_online_n3_map_follows_the_loop_correction(noisy_small_city, tmp_path):
                                                  "n3_loop=moved", f"n3_config={tmp_path / 'n3.yaml'}"],
                       schema=SlamConfig)
     out = run_slam(cfg, str(tmp_path / "run"), progress=False)
-    assert out["map_kind"] == "n3" and out["frames"] == 15
-    assert out["ate_slam"]["rmse_m"] < 0.6 * out["ate_odometry"]["rmse_m"], (out["ate_slam"], out["ate_odometry"])
+    assert out["map_kind"] == "n3" and out["frames"] == 64
+    assert out["ate_slam"]["rmse_m"] < 0.95 * out["ate_odometry"]["rmse_m"], (out["ate_slam"], out["ate_odometry"])
     first = out["loops"][0]
     assert first["reintegrated"] >= 3 and first["pairs_removed"] > 0, first
-    assert out["metrics"]["chamfer_l1_cm"] < 8.3, out["metrics"]
+    assert out["metrics"]["chamfer_l1_cm"] < 6.0, out["metrics"]
     fit = _frame_fit(tmp_path / "run", noisy_small_city, n3cfg)
-    assert fit.max() < 0.022, fit
+    assert fit.max() < 0.019, fit
 
 
 def test_forget_frames_removes_exactly_those_pairs():
