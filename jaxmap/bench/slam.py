@@ -148,14 +148,21 @@ def n3_slam_against_references(cfg, out: str) -> dict:
             "config": {k: getattr(cfg, k) for k in ("n3_config", "n3_track", "n3_loop", "n3_loop_min_move_m")}}
 
 
-def _print_n3(res: dict) -> None:
-    print(f"\njaxmap slam (map_kind n3) on {res['frames']} frames, {res['config']}")
+def _print_ate(ates: dict, rule: bool) -> None:
+    """The trajectory table `{name: ate()}` (rows without one are left out), then a blank line."""
     print(f"{'trajectory (ATE)':22s} {'RMSE cm':>8s} {'mean cm':>8s} {'max cm':>7s} {'rot deg':>8s}")
-    for name, a in res["ate"].items():
+    if rule:
+        print("-" * 57)
+    for name, a in ates.items():
         if a:
             print(f"{name:22s} {100 * a['rmse_m']:8.2f} {100 * a['mean_m']:8.2f} {100 * a['max_m']:7.2f} "
                   f"{a['rot_rmse_deg']:8.3f}")
     print()
+
+
+def _print_n3(res: dict) -> None:
+    print(f"\njaxmap slam (map_kind n3) on {res['frames']} frames, {res['config']}")
+    _print_ate(res["ate"], rule=False)
     print_map_table(res["recon"])
     r = res["recon"]
     if r["slam (online)"] and r["GT poses (jaxmap map)"]:
@@ -331,13 +338,7 @@ def slam_odometry(run_dir: str) -> np.ndarray:
 
 def _print(res: dict) -> None:
     print(f"\njaxmap slam on {res['frames']} frames ({res['keyframes']} keyframes)")
-    print(f"{'trajectory (ATE)':22s} {'RMSE cm':>8s} {'mean cm':>8s} {'max cm':>7s} {'rot deg':>8s}")
-    print("-" * 57)
-    for name, a in res["ate"].items():
-        if a:
-            print(f"{name:22s} {100 * a['rmse_m']:8.2f} {100 * a['mean_m']:8.2f} {100 * a['max_m']:7.2f} "
-                  f"{a['rot_rmse_deg']:8.3f}")
-    print()
+    _print_ate(res["ate"], rule=True)
     print_map_table(res["recon"])
     print(f"\nloops closed: {len(res['loops'])}")
     for lp in res["loops"]:

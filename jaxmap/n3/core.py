@@ -18,6 +18,7 @@ Where each part lives, read top to bottom:
 from jaxmap.grid.features import FEATURE_INIT_BLOCK
 from jaxmap.n3.frame import (
     COMPILE_SECONDS,
+    compiles_since,
     EXECUTABLES,
     EXECUTABLES_KEPT,
     compiled_step,
@@ -40,7 +41,7 @@ from jaxmap.sizes import pow2
 _EXECUTABLES = EXECUTABLES
 
 __all__ = [
-    "COMPILE_SECONDS", "EXECUTABLES", "EXECUTABLES_KEPT", "FEATURE_INIT_BLOCK", "Capacities", "FrameStats", "Hyper",
+    "COMPILE_SECONDS", "compiles_since", "EXECUTABLES", "EXECUTABLES_KEPT", "FEATURE_INIT_BLOCK", "Capacities", "FrameStats", "Hyper",
     "N3State", "N3Static", "RawScan", "ScanBatch", "TrainStats", "capacities_for", "compiled_step", "count_kept",
     "forget_compiled", "frames_held_jit", "grow_for", "init_state", "integrate", "origin_world", "pow2",
     "prepare_scan", "query", "query_grad_jit", "query_jit", "run_frame", "set_origin", "step", "step_raw",

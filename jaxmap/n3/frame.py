@@ -147,6 +147,12 @@ EXECUTABLES_KEPT = 4
 COMPILE_SECONDS: list = []  # seconds of every compile of `step` in this process (benchmarks read it)
 
 
+def compiles_since(n: int) -> dict:
+    """`{"compile_s", "compiles"}` of the frame program's compiles after the first `n` of this process
+    (`n = len(COMPILE_SECONDS)` taken when a run starts): what a run's timing.json reports."""
+    return {"compile_s": float(sum(COMPILE_SECONDS[n:])), "compiles": len(COMPILE_SECONDS) - n}
+
+
 def compiled_step(static: N3Static, state: N3State, batch, rows: int = 0):
     """The compiled `step` (a ScanBatch) or `step_raw` (a RawScan, `rows` preprocessed rows) for these
     shapes, compiled (and logged) on first use. Compiling ahead of time, instead of on the first

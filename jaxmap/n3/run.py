@@ -26,7 +26,7 @@ from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.n3 import checkpoint, scan
-from jaxmap.n3.core import COMPILE_SECONDS
+from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.n3.mapper import N3Mapper
 
 log = logging.getLogger("jaxmap")
@@ -66,8 +66,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     loop = run_frames(Prefetcher(seq, start, len(seq), functools.partial(prepare_frame, cfg.preprocess)),
                       functools.partial(map_frame, mapper), total=len(seq), start=start, progress=bar,
                       viewer=viewer, checkpoints=saves, t_start=t_start)
-    extra = {"compile_s": float(sum(COMPILE_SECONDS[n_compiles:])), "compiles": len(COMPILE_SECONDS) - n_compiles,
-             "peak_rss_mapping_mb": peak_rss_mb(), "store_frames_held": mapper.frames_held()}
+    extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
+             "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer)
 
 

@@ -35,7 +35,7 @@ from jaxmap.geometry import compose, orthonormalize, pose_change, se3_inverse, v
 from jaxmap.io import open_sequence
 from jaxmap.preprocess import crop, voxel_downsample
 from jaxmap.slam.track import TrackOptions, track_scan
-from jaxmap.slam.trajectory import write_kitti, write_tum
+from jaxmap.slam.trajectory import write_trajectory
 
 DEFAULT_VOXEL_M = 0.2   # scans are downsampled to this before the `max_points` subset is drawn
 SEARCH_WIDE_M = 2.0     # the search's half-width where the guess is weak: the first two frames, after a lost one
@@ -180,9 +180,7 @@ def write_outputs(out_dir: str, seq, step: LocalizeStep, has_gt: bool, wall_s: f
     """trajectory_kitti.txt, trajectory_tum.txt, frames.json and metrics.json; returns the metrics."""
     traj = np.stack(step.poses)
     recs = step.records
-    write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
-    stamps = seq.timestamps if getattr(seq, "timestamps", None) is not None else seq.indices
-    write_tum(os.path.join(out_dir, "trajectory_tum.txt"), np.asarray(stamps[:len(traj)], np.float64), traj)
+    write_trajectory(out_dir, seq, traj)
     ok = np.array([r["ok"] for r in recs], bool)
     times = [r["track_s"] for r in recs]
     m = {"run": out_dir, "frames": len(recs), "localised": int(ok.sum()), "localised_fraction": float(ok.mean()),

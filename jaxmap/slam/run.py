@@ -41,11 +41,11 @@ from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
-from jaxmap.n3.core import COMPILE_SECONDS
+from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.n3slam import n3_checkpoint, n3_map_config, open_n3_mapper, run_n3_frontend
-from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_tum
+from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_trajectory
 
 log = logging.getLogger("jaxmap")
 
@@ -243,8 +243,8 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
            "loop_map_s": float(sum(lp["map_s"] for lp in res["loops"])), "tracking": res["tracking"],
            "step": res["step_medians"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
-    extra = {"compile_s": float(sum(COMPILE_SECONDS[n_compiles:])), "compiles": len(COMPILE_SECONDS) - n_compiles}
-    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer, extra=extra)
+    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer,
+                     extra=compiles_since(n_compiles))
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     with open(os.path.join(out_dir, "metrics.json"), "w") as f:
         json.dump(out, f, default=_jsonable)
@@ -254,11 +254,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
 def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarray | None, evaluate: bool) -> dict:
     """trajectory_kitti.txt, trajectory_tum.txt (and odometry_kitti.txt); the ATE of each against the
     sequence's poses when `evaluate`."""
-    write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
-    # sensor timestamps where the data has them (ROS bags, TUM RGB-D), else frame numbers
-    stamps = (np.asarray(seq.timestamps[:len(traj)], np.float64) if getattr(seq, "timestamps", None) is not None
-              else np.asarray(seq.indices[:len(traj)], np.float64))
-    write_tum(os.path.join(out_dir, "trajectory_tum.txt"), stamps, traj)
+    write_trajectory(out_dir, seq, traj)
     out = {}
     gt = np.asarray(seq.poses[:len(traj)], np.float64)  # = seq.frame(i).pose, without re-reading the points
     if evaluate:

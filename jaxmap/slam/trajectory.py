@@ -42,6 +42,15 @@ def write_tum(path, timestamps, poses) -> None:
             f.write(" ".join(repr(float(v)) for v in (t, *T[:3, 3], *qi)) + "\n")
 
 
+def write_trajectory(out_dir: str, seq, traj) -> None:
+    """out_dir/trajectory_kitti.txt and trajectory_tum.txt of a run over `seq`: poses [N,4,4] of its first N
+    frames, stamped with the sensor's timestamps where the data has them (ROS bags, TUM RGB-D), else with
+    the frame numbers."""
+    write_kitti(os.path.join(out_dir, "trajectory_kitti.txt"), traj)
+    stamps = seq.timestamps if getattr(seq, "timestamps", None) is not None else seq.indices
+    write_tum(os.path.join(out_dir, "trajectory_tum.txt"), np.asarray(stamps[:len(traj)], np.float64), traj)
+
+
 def _read_table(path) -> tuple[np.ndarray, list[int]]:
     """Numbers of a whitespace table ([L,C] float64) and the file line number of each row (see
     `jaxmap.io.stamped.read_number_table`: every line as many numbers as the first)."""
