@@ -64,13 +64,15 @@ class Frame:
 
     position: 0-based position in the run's frame selection; index: the sequence's own frame number;
     points: [N, 3] float32 sensor frame (preprocessed when `normals` is set); pose: [4, 4] float64
-    T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame."""
+    T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame;
+    image: [H, W] float32 the whole scan's range image (`jaxmap.range_image`; N3's free-space evidence)."""
 
     position: int
     index: int
     points: np.ndarray
     pose: np.ndarray | None
     normals: np.ndarray | None = None
+    image: np.ndarray | None = None
 
 
 def read_frame(seq, position: int) -> Frame:

@@ -34,6 +34,8 @@ class N3Mapper:
         the frame program is then compiled before the map's buffers are allocated, so the compiler's
         heap (about a gigabyte on a CPU) and the map are not in memory at the same time."""
         self.cfg = cfg or MapConfig()
+        if state is None and first_scan is not None:
+            self.cfg = scan.resolve_layout(self.cfg, first_scan[0])
         self.static = core.N3Static.from_config(self.cfg)
         self._bucket, self._headroom = 0, {}
         if state is None:
@@ -57,23 +59,43 @@ class N3Mapper:
             batch = scan.to_raw(pts, pose, pose[:3, 3], self._bucket)
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         else:
-            pts, nrm, pose = scan.preprocess(points_s, pose, self.cfg.preprocess, 0)
+            pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, 0, image=self.static.evidence)
             self._bucket = scan.bucket_for(len(pts))
-            batch = scan.to_batch(pts, nrm, pose, pose[:3, 3], self._bucket)
+            batch = scan.to_batch(pts, nrm, pose, pose[:3, 3], self._bucket, img)
         core.compiled_step(self.static, abstract, batch, self._headroom.get("scan_rows", 0))
+
+    def fix_layout(self, points_s) -> None:
+        """Read the range-image layout off the first scan when the config leaves it open (an empty map is
+        made again with it: nothing was compiled or mapped yet)."""
+        if not scan.needs_layout(self.cfg):
+            return
+        self.cfg = scan.resolve_layout(self.cfg, points_s, self.frames)
+        self.static = core.N3Static.from_config(self.cfg)
+        caps = core.Capacities.of(self.state)
+        self.state = None
+        self.state = core.init_state(self.static, self.cfg, caps)
 
     def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
         """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
-        `prepared` = (points, normals, pose) already preprocessed (see `scan.Prefetcher`).
-        Returns the frame's timings (s), loss and map/store sizes."""
+        `prepared` = (points, normals, pose[, image]) already preprocessed (`scan.preprocess`, e.g. in the
+        frame loop's prefetch thread; the image, the whole scan's range image, feeds the free-space evidence).
+        Returns the frame's timings (s), loss, map/store sizes and `kept` ([M] bool: the prepared points
+        that got training samples; None with `preprocess.device`)."""
         t0 = time.perf_counter()
         device = self.static.preprocess is not None
+        img = None
+        if prepared is None and self.frames == 0:
+            self.fix_layout(points_s)
         if prepared is not None:
-            pts, nrm, pose = prepared
+            pts, nrm, pose = prepared[:3]
+            img = prepared[3] if len(prepared) > 3 else None
         elif device:
             (pts, pose), nrm = scan.check_frame(points_s, pose, self.frames), None
         else:
-            pts, nrm, pose = scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames)
+            pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames,
+                                                  image=self.static.evidence)
+        if self.static.evidence and not device and img is None:
+            img = scan.empty_image(self.static.image)  # no image: this frame sees nothing free
         t1 = time.perf_counter()
         if self.frames == 0:
             self.state = core.set_origin(self.static, self.state, pose[:3, 3])
@@ -84,7 +106,7 @@ class N3Mapper:
             if "scan_rows" not in self._headroom:  # the first frame: size the rows by what it keeps
                 self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         else:
-            batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket)
+            batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket, img)
         self.state, fs, ts, passes = core.run_frame(self.static, self.state, batch, self._headroom,
                                                      seed=self.cfg.train.seed, feature_std=self.cfg.grid.feature_std)
         t2 = time.perf_counter()
@@ -96,12 +118,15 @@ class N3Mapper:
                 "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
                 "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
                 "free_dropped": int(fs.free_dropped), "carved": int(fs.carved),
-                "points_filtered": int(fs.points_filtered),
+                "points_filtered": int(fs.points_filtered), "points_void": int(fs.points_void),
+                "voxels_free": int(fs.voxels_free), "voxels_void": int(fs.voxels_void),
+                "voxels_raised": int(fs.voxels_raised),
                 "feature_capacity": int(self.state.feature_table.shape[0]),
                 "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
         self.frames += 1
         self.timings.append(info)
-        return info
+        # (not in the timings: a per-point mask per frame would bloat timing.json and the checkpoints)
+        return {**info, "kept": None if device else np.asarray(fs.kept)[:len(pts)]}
 
     def reset(self) -> None:
         """Forget the map: an empty state of the current capacities (so the compiled frame program is

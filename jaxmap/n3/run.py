@@ -55,6 +55,9 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
         if mapper is None:
             first = seq.frame(0) if len(seq) else None
             mapper = N3Mapper(cfg, first_scan=(first.points, first.pose) if first is not None else None)
+        elif scan.needs_layout(mapper.cfg) and mapper.frames == 0 and len(seq):
+            mapper.fix_layout(seq.frame(0).points)
+        cfg = mapper.cfg  # with the range-image layout read off the first scan
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     start = mapper.frames
     viewer = open_viewer(view, mapper)
@@ -63,7 +66,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                         resume=f"jaxmap map --resume {out_dir}")
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    loop = run_frames(Prefetcher(seq, start, len(seq), functools.partial(prepare_frame, cfg.preprocess)),
+    prepare = functools.partial(prepare_frame, cfg.preprocess, image=mapper.static.evidence)
+    loop = run_frames(Prefetcher(seq, start, len(seq), prepare),
                       functools.partial(map_frame, mapper), total=len(seq), start=start, progress=bar,
                       viewer=viewer, checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
@@ -71,20 +75,21 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer)
 
 
-def prepare_frame(cfg_preprocess, seq, i: int) -> Frame:
-    """`Prefetcher` loader of frame i: read, checked and preprocessed on the host (with `preprocess.device`
-    only read and checked: the frame program preprocesses, and `normals` is None)."""
+def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False) -> Frame:
+    """`Prefetcher` loader of frame i: read, checked and preprocessed on the host, with its range image
+    when `image` (with `preprocess.device` only read and checked: the frame program preprocesses, and
+    `normals` is None)."""
     fr = seq.frame(i)
     if cfg_preprocess.device:
         pts, pose = scan.check_frame(fr.points, fr.pose, i)
         return Frame(i, int(fr.index), pts, pose)
-    pts, nrm, pose = scan.preprocess(fr.points, fr.pose, cfg_preprocess, i)
-    return Frame(i, int(fr.index), pts, pose, nrm)
+    pts, nrm, pose, img = scan.preprocess(fr.points, fr.pose, cfg_preprocess, i, image=image)
+    return Frame(i, int(fr.index), pts, pose, nrm, img)
 
 
 def map_frame(mapper: N3Mapper, frame: Frame) -> tuple[dict, np.ndarray]:
     """The N3 step of the frame loop: the prepared frame into the map, at its pose."""
-    return mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose)), frame.pose
+    return mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose, frame.image)), frame.pose
 
 
 def city_config_path() -> str | None:

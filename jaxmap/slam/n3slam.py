@@ -50,16 +50,17 @@ def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
 @dataclasses.dataclass(frozen=True)
 class SlamFrame(Frame):
     """A frame of the N3 SLAM loop: `points` as read (for the front end and the tracker), `prepared`
-    = (points, normals) as the N3 map's preprocessing leaves them (sensor frame)."""
+    = (points, normals) as the N3 map's preprocessing leaves them (sensor frame), `image` the scan's range
+    image (the map's free-space evidence; None when it is off)."""
 
     prepared: tuple | None = None
 
 
-def prepare_slam_frame(cfg_preprocess, seq, i: int) -> SlamFrame:
-    """`Prefetcher` loader: the frame as read, and its N3-preprocessed points and normals."""
+def prepare_slam_frame(cfg_preprocess, seq, i: int, image: bool = False) -> SlamFrame:
+    """`Prefetcher` loader: the frame as read, and its N3-preprocessed points and normals (and range image)."""
     fr = seq.frame(i)
-    pts, nrm, _ = scan.preprocess(fr.points, np.eye(4), cfg_preprocess, i)
-    return SlamFrame(i, int(fr.index), scan.clean_points(fr.points, i), fr.pose, prepared=(pts, nrm))
+    pts, nrm, _, img = scan.preprocess(fr.points, np.eye(4), cfg_preprocess, i, image=image)
+    return SlamFrame(i, int(fr.index), scan.clean_points(fr.points, i), fr.pose, image=img, prepared=(pts, nrm))
 
 
 def default_tracker(min_valid_fraction: float):
@@ -85,6 +86,7 @@ class N3SlamStep:
         self.cfg, self.mapper, self.track, self.viewer = cfg, mapper, track, viewer
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
         self.prepared: list[tuple] = []          # per frame: (points, normals) sensor frame
+        self.images: list = []                   # per frame: its range image (None: evidence off)
         self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at
         self.counter: list[int] = []             # per frame: its number in the map (`N3Mapper.frames` as added)
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
@@ -115,9 +117,10 @@ class N3SlamStep:
             r = self.fe.add_frame(frame.points, refine=self._refine(pts))
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
             self.prepared.append(frame.prepared)
+            self.images.append(frame.image)
             self.mapped_at.append(r.pose.copy())
             self.counter.append(self.mapper.frames)
-            info = self.mapper.add_frame(None, None, prepared=(*frame.prepared, r.pose))
+            info = self.mapper.add_frame(None, None, prepared=(*frame.prepared, r.pose, frame.image))
             record = dict(r.timings, map_s=info["total_s"], loss=info["loss"], loops=len(self.loops),
                           ok=r.odometry_ok, tracked=r.refined)
             if r.optimized:
@@ -153,7 +156,7 @@ class N3SlamStep:
         removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
         for i in redo:
             self.counter[i] = mapper.frames
-            mapper.add_frame(None, None, prepared=(*self.prepared[i], traj[i]))
+            mapper.add_frame(None, None, prepared=(*self.prepared[i], traj[i], self.images[i]))
             self.mapped_at[i] = traj[i].copy()
         rec = {"frame": frame_index, "mode": mode, "frames": len(traj), "reintegrated": len(redo),
                "pairs_removed": removed,
@@ -172,7 +175,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     if track is None and cfg.n3_track:
         track = default_tracker(cfg.n3_track_min_valid)
     step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
-    load = lambda s, i: prepare_slam_frame(mapper.cfg.preprocess, s, i)  # noqa: E731
+    load = lambda s, i: prepare_slam_frame(mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
     loop = run_frames(Prefetcher(seq, 0, len(seq), load), step, total=len(seq), progress=bar, viewer=viewer)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
