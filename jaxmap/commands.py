@@ -38,6 +38,8 @@ def synth(args) -> int:
             kw["beams"] = args.beams
         if args.traffic:
             kw["traffic"] = args.traffic
+        if args.parking:
+            kw["parking"] = True
         if args.realistic is not None:
             kw["realistic"] = args.realistic
         if args.lane_shift or args.start:
@@ -45,12 +47,15 @@ def synth(args) -> int:
                 raise SystemExit("jaxmap synth: --lane-shift and --start are for the grid loop (not --long, "
                                  "not --layout suburb)")
             kw.update(lane_shift_m=args.lane_shift, start_m=args.start)
-    elif (args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None
-          or args.lane_shift or args.start):
-        raise SystemExit("jaxmap synth: --layout, --beams, --traffic, --realistic, --lane-shift and --start are "
-                         "for the city scene")
+    elif (args.layout != "grid" or args.beams is not None or args.traffic or args.parking
+          or args.realistic is not None or args.lane_shift or args.start):
+        raise SystemExit("jaxmap synth: --layout, --beams, --traffic, --parking, --realistic, --lane-shift and "
+                         "--start are for the city scene")
     output_dir(args.out)
-    stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
+    try:
+        stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
+    except ValueError as e:  # (options that do not combine, a drive with no room for the parking cars)
+        raise SystemExit(f"jaxmap synth: {e}") from None
     print(json.dumps(stats))
     return 0
 
