@@ -64,13 +64,16 @@ class Frame:
 
     position: 0-based position in the run's frame selection; index: the sequence's own frame number;
     points: [N, 3] float32 sensor frame (preprocessed when `normals` is set); pose: [4, 4] float64
-    T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame."""
+    T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame;
+    dynamic: [N] bool, the points inside the frame's moving-object boxes (`jaxmap.metrics.dynamic`; None
+    where the sequence has none)."""
 
     position: int
     index: int
     points: np.ndarray
     pose: np.ndarray | None
     normals: np.ndarray | None = None
+    dynamic: np.ndarray | None = None
 
 
 def read_frame(seq, position: int) -> Frame:
