@@ -19,12 +19,18 @@ log = logging.getLogger("jaxmap")
 
 
 def finish_run(mapper: Mapper, cfg, out_dir: str, loop: LoopResult | None = None, *, evaluate: bool = True,
-               mesh: bool = True, extra: dict | None = None, viewer=None) -> dict:
+               mesh: bool = True, extra: dict | None = None, viewer=None, point_scores: dict | None = None) -> dict:
     """Mesh (`out_dir/mesh.ply`), metrics against the sequence's ground truth (`metrics.json`, when it
     has gt_points.ply) and timings (`timing.json`) of a mapped run; returns the run's summary.
-    mesh=False: timings only. The viewer, if any, shows the final mesh and is closed."""
+    mesh=False: timings only. The viewer, if any, shows the final mesh and is closed. point_scores: the
+    run's `jaxmap.metrics.dynamic.PointScores.result()` (sequences with moving objects), written to
+    metrics.json and the summary as "dynamic_points"."""
     out = (mesh_and_metrics(mapper, cfg, out_dir, evaluate=evaluate) if mesh
            else {"mesh": None, "faces": 0, "mesh_s": 0.0})
+    if point_scores is not None:
+        out["dynamic_points"] = point_scores
+        if "metrics" in out:
+            out["metrics"]["dynamic_points"] = point_scores
     summ = dict(mapper.timing_summary())
     if loop is not None and loop.frames_run:
         summ.update({"wall_s": loop.wall_s, "wall_s_per_frame": loop.wall_s / loop.frames_run,

@@ -65,7 +65,9 @@ class Frame:
     position: 0-based position in the run's frame selection; index: the sequence's own frame number;
     points: [N, 3] float32 sensor frame (preprocessed when `normals` is set); pose: [4, 4] float64
     T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame;
-    image: [H, W] float32 the whole scan's range image (`jaxmap.range_image`; N3's free-space evidence)."""
+    image: [H, W] float32 the whole scan's range image (`jaxmap.range_image`; N3's free-space evidence);
+    dynamic: [N] bool, the points inside the frame's moving-object boxes (`jaxmap.metrics.dynamic`; None
+    where the sequence has none)."""
 
     position: int
     index: int
@@ -73,6 +75,7 @@ class Frame:
     pose: np.ndarray | None
     normals: np.ndarray | None = None
     image: np.ndarray | None = None
+    dynamic: np.ndarray | None = None
 
 
 def read_frame(seq, position: int) -> Frame:

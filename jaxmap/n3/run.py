@@ -7,7 +7,9 @@ A run directory holds:
                   every `checkpoint_every` frames, at the end, and on Ctrl-C or SIGTERM), what
                   `--resume` and `jaxmap mesh` read (the newest intact one)
   mesh.ply        the marching-cubes mesh at mesh.resolution_m (world frame)
-  metrics.json    reconstruction metrics, when the sequence has ground truth (gt_points.ply)
+  metrics.json    reconstruction metrics, when the sequence has ground truth (gt_points.ply); with moving
+                  objects (moving_objects.json) also "dynamic_points": SA / DA of the points trained on
+                  (`jaxmap.metrics.dynamic`; after a --resume, of the frames mapped since)
   timing.json     per-frame timings (preprocess / sampling / training) and store sizes, plus medians
 """
 from __future__ import annotations
@@ -25,6 +27,7 @@ from jaxmap.errors import CheckpointError, NoCheckpointError
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.hostmem import peak_rss_mb
+from jaxmap.metrics import dynamic
 from jaxmap.n3 import checkpoint, scan
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.n3.mapper import N3Mapper
@@ -60,36 +63,47 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
         cfg = mapper.cfg  # with the range-image layout read off the first scan
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     start = mapper.frames
+    labeller = dynamic.labeller_for(cfg.data.path)
+    scores = dynamic.PointScores() if labeller is not None else None
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
                         every=max(cfg.checkpoint_every, 1), busy=checkpoint.saving, wait=checkpoint.wait_for_saves,
                         resume=f"jaxmap map --resume {out_dir}")
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    prepare = functools.partial(prepare_frame, cfg.preprocess, image=mapper.static.evidence)
-    loop = run_frames(Prefetcher(seq, start, len(seq), prepare),
-                      functools.partial(map_frame, mapper), total=len(seq), start=start, progress=bar,
-                      viewer=viewer, checkpoints=saves, t_start=t_start)
+    load = functools.partial(prepare_frame, cfg.preprocess, image=mapper.static.evidence, label=labeller)
+    loop = run_frames(Prefetcher(seq, start, len(seq), load), functools.partial(map_frame, mapper, scores=scores),
+                      total=len(seq), start=start, progress=bar, viewer=viewer, checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
-    return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer)
+    return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
+                      point_scores=scores.result() if scores is not None else None)
 
 
-def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False) -> Frame:
+def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None) -> Frame:
     """`Prefetcher` loader of frame i: read, checked and preprocessed on the host, with its range image
     when `image` (with `preprocess.device` only read and checked: the frame program preprocesses, and
-    `normals` is None)."""
+    `normals` is None). label: a `jaxmap.metrics.dynamic.Labeller` (the sequence has moving objects):
+    `dynamic` labels its points here, in the prefetch thread, off the mapping loop."""
     fr = seq.frame(i)
+    img = None
     if cfg_preprocess.device:
-        pts, pose = scan.check_frame(fr.points, fr.pose, i)
-        return Frame(i, int(fr.index), pts, pose)
-    pts, nrm, pose, img = scan.preprocess(fr.points, fr.pose, cfg_preprocess, i, image=image)
-    return Frame(i, int(fr.index), pts, pose, nrm, img)
+        (pts, pose), nrm = scan.check_frame(fr.points, fr.pose, i), None
+    else:
+        pts, nrm, pose, img = scan.preprocess(fr.points, fr.pose, cfg_preprocess, i, image=image)
+    return Frame(i, int(fr.index), pts, pose, nrm, img,
+                 dynamic=label(pts, pose, int(fr.index)) if label is not None else None)
 
 
-def map_frame(mapper: N3Mapper, frame: Frame) -> tuple[dict, np.ndarray]:
-    """The N3 step of the frame loop: the prepared frame into the map, at its pose."""
-    return mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose, frame.image)), frame.pose
+def map_frame(mapper: N3Mapper, frame: Frame, scores: dynamic.PointScores | None = None) -> tuple[dict, np.ndarray]:
+    """The N3 step of the frame loop: the prepared frame into the map, at its pose; with `scores`, its
+    labelled points counted against those the mapper trained on (its record's "kept", [M] bool over the
+    rows of frame.points; all when it does not say). "kept" leaves the record (which goes to timing.json)."""
+    info = mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose, frame.image))
+    kept = info.pop("kept", None)
+    if scores is not None and frame.dynamic is not None:
+        scores.add(frame.dynamic, kept)
+    return info, frame.pose
 
 
 def city_config_path() -> str | None:
