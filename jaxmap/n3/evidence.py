@@ -1,7 +1,8 @@
 """Free-space evidence that persists: per leaf voxel, how many frames saw it free since it was last hit.
 
-DUFOMap's idea on the N3 map's voxels. Every frame tests every allocated leaf voxel against the scan's
-range image (`jaxmap.range_image`, built from the whole raw scan, not the training crop):
+DUFOMap's idea on the N3 map's voxels. Every frame tests the allocated leaf voxels within
+`evidence.max_range_m` of the sensor (the window's and those that left it) against the scan's range
+image (`jaxmap.range_image`, built from the whole raw scan, not the training crop):
 
   seen free  every return whose ray passes through the voxel (its footprint: the pixels within
              asin(r_v / d) of the centre's direction, d its distance, r_v the half-diagonal, plus half a
@@ -37,6 +38,8 @@ from jaxmap.grid.compaction import nonzero_fixed
 
 RUN_CAP = 1 << 14          # free_run saturates here (int32; a voxel seen free for ever stays void)
 RAISE_PER_FRAME = 4096     # voxels whose pairs are raised per frame (the rest next frame: `raised` says)
+TESTED_PER_FRAME = 1 << 17  # voxels tested against a frame's range image at most (those within
+                            # `evidence.max_range_m`; when more are, a different part of them each frame)
 
 
 @flax.struct.dataclass
@@ -63,29 +66,44 @@ def void(ev: Evidence, void_frames: int) -> jax.Array:
     return ev.free_run >= void_frames
 
 
-def seen_free(voxel_coord, n_voxels, leaf: float, levels, layout: ri.Layout, rotation, translation,
-              margin: float, min_range: float):
-    """[V] bool: voxels (rows < n_voxels, leaf-voxel coordinates [V, 3] int32 in the map frame) that this
-    frame saw free. levels: `range_image.min_pool_levels` of the frame's range image [L, H, W];
-    rotation [3, 3] R_map_sensor and translation [3] the sensor's pose in the map frame."""
+def candidates(voxel_coord, n_voxels, leaf: float, sensor, max_range: float, offset):
+    """The voxel rows a frame tests: those within max_range of the sensor (map frame), at most
+    TESTED_PER_FRAME of them, starting at row `offset` (a traced int; the caller rotates it, so that when
+    more voxels are in range every one is tested every few frames). Returns (rows [T] int32 (V: none),
+    [] bool more voxels were in range than tested)."""
     v = voxel_coord.shape[0]
-    centre = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - translation             # [V, 3] map frame
+    d = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - sensor
+    near = (jnp.sum(d * d, axis=1) <= max_range * max_range) & (jnp.arange(v, dtype=jnp.int32) < n_voxels)
+    size = min(TESTED_PER_FRAME, v)
+    idx = nonzero_fixed(jnp.roll(near, -offset), size, v)
+    rows = jnp.where(idx < v, (idx + offset) % v, v)
+    return rows, jnp.sum(near, dtype=jnp.int32) > size
+
+
+def seen_free(voxel_coord, leaf: float, levels, layout: ri.Layout, rotation, translation, margin: float,
+              min_range: float):
+    """[T] bool: which of the voxels (leaf-voxel coordinates [T, 3] int32, map frame) this frame saw free.
+    levels: `range_image.min_pool_levels` of the frame's range image [L, H, W]; rotation [3, 3]
+    R_map_sensor and translation [3] the sensor's pose in the map frame."""
+    centre = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - translation             # [T, 3] map frame
     # R^T c elementwise, not a matmul: a GPU's float32 matmul may round through TF32 (centimetres at 50 m)
-    p_s = jnp.sum(centre[:, :, None] * rotation[None], axis=1)                        # [V, 3] sensor frame
+    p_s = jnp.sum(centre[:, :, None] * rotation[None], axis=1)                        # [T, 3] sensor frame
     row, col, dist, inside = ri.pixels(p_s, layout, jnp)
     half = leaf * math.sqrt(3.0) / 2.0
     ang = jnp.arcsin(jnp.clip(half / jnp.maximum(dist, 1e-3), 0.0, 1.0))
     lv = ri.level_for(ang, layout, jnp)
     n_lv = len(ri.FOOTPRINTS)
-    ok = inside & (lv < n_lv) & (dist > max(min_range, half + margin)) & (jnp.arange(v, dtype=jnp.int32) < n_voxels)
-    nearest = levels[jnp.minimum(lv, n_lv - 1), row, col]   # [V]
+    ok = inside & (lv < n_lv) & (dist > max(min_range, half + margin))
+    nearest = levels[jnp.minimum(lv, n_lv - 1), row, col]   # [T]
     return ok & jnp.isfinite(nearest) & (nearest > dist + half + margin)
 
 
-def observe(ev: Evidence, free, hit, apply) -> Evidence:
-    """This frame's evidence: hit [V] bool resets, free [V] bool (and not hit) counts; apply [] bool (the
-    frame went in: a failed pass changes nothing)."""
-    run = jnp.where(hit, 0, jnp.where(free, jnp.minimum(ev.free_run + 1, RUN_CAP), ev.free_run))
+def observe(ev: Evidence, rows, free, hit, apply) -> Evidence:
+    """This frame's evidence: hit [V] bool resets, free [T] bool of voxel rows [T] (V: none; and not hit)
+    counts; apply [] bool (the frame went in: a failed pass changes nothing)."""
+    v = ev.free_run.shape[0]
+    seen = jnp.zeros((v,), bool).at[jnp.where(free & apply, rows, v)].set(True, mode="drop")
+    run = jnp.where(hit, 0, jnp.where(seen, jnp.minimum(ev.free_run + 1, RUN_CAP), ev.free_run))
     return Evidence(free_run=jnp.where(apply, run, ev.free_run), raised=ev.raised & ~(hit & apply))
 
 

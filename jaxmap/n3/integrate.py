@@ -84,7 +84,7 @@ def drop_void_points(static: N3Static, state: N3State, scan: ScanBatch):
     return scan._replace(valid=scan.valid & ~drop), rows, jnp.sum(drop, dtype=jnp.int32)
 
 
-def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, voxel_coord, n_voxels, ok):
+def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, voxel_coord, n_voxels, frame, ok):
     """This frame's free-space evidence (`jaxmap.n3.evidence`): the voxels its range image saw free count
     one more frame, the voxels its points hit (point_rows [N], those dropped as void too) start again;
     the pairs of voxels that turned void are raised. Nothing changes when ok [] is False (the pass is
@@ -92,13 +92,16 @@ def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, vo
     v = ev.free_run.shape[0]
     hit = jnp.zeros((v,), bool).at[jnp.where(point_rows >= 0, point_rows, v)].set(True, mode="drop")
     levels = range_image.min_pool_levels(scan.image, static.image, jnp)
-    free = n3evidence.seen_free(voxel_coord, n_voxels, static.leaf, levels, static.image, scan.rotation,
-                                scan.sensor, static.evidence_margin, static.free_min_range)
-    ev = n3evidence.observe(ev, free, hit, ok)
+    offset = (frame * n3evidence.TESTED_PER_FRAME) % v
+    rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset)
+    coords = voxel_coord[jnp.minimum(rows, v - 1)]
+    free = (rows < v) & n3evidence.seen_free(coords, static.leaf, levels, static.image, scan.rotation, scan.sensor,
+                                             static.evidence_margin, static.free_min_range)
+    ev = n3evidence.observe(ev, rows, free, hit, ok)
     n_raised = jnp.zeros((), jnp.int32)
     if static.raise_pairs and not static.uses_pool:
         ev, store, n_raised = n3evidence.raise_void_pairs(ev, store, static.void_frames, static.evidence_margin, ok)
-    return ev, store, jnp.sum(free & ~hit, dtype=jnp.int32), n_raised
+    return ev, store, jnp.sum(free & ~hit[jnp.minimum(rows, v - 1)], dtype=jnp.int32), n_raised
 
 
 def allocate_voxels(static: N3Static, state: N3State, vkeys, valid, vox):
@@ -244,7 +247,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     ev, n_free, n_raised = state.evidence, zero, zero
     if static.evidence:
         ev, store, n_free, n_raised = update_evidence(static, state.evidence, store, scan, point_rows, voxel_coord,
-                                                      voxels.count, ok)
+                                                      voxels.count, state.frame, ok)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
                           voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool,
                           evidence=ev)

@@ -89,7 +89,12 @@ def extract_mesh_of(static: N3Static, state: N3State, res: float, min_component_
         raise ConfigError(f"mesh resolution {res:g} m must be positive and divide the leaf voxel size "
                           f"{static.leaf:g} m (e.g. {static.leaf / 2:g} or {static.leaf:g})")
     n = int(state.voxels.count)
-    cells = mesh_cells(np.asarray(state.voxel_coord[:n]), static.mask_level)
+    coords = np.asarray(state.voxel_coord[:n])
+    if static.evidence:
+        # only the parents of leaves that are not void: a parent whose every allocated leaf is void holds
+        # no surface (its unallocated leaves have no evidence of their own, and are meshed with their parent)
+        coords = coords[~np.asarray(n3evidence.void(state.evidence, static.void_frames)[:n])]
+    cells = mesh_cells(coords, static.mask_level)
     origin = origin_world(static, state)
 
     def sdf_fn(p_m):

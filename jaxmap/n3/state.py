@@ -75,6 +75,7 @@ class N3Static:
     evidence_margin: float = 0.1
     void_frames: int = 2
     raise_pairs: bool = True
+    evidence_range: float = 40.0  # voxels farther from the sensor are not tested (metres)
     image: object = None        # the scans' range_image.Layout (evidence: the frame's range image; None: off)
     # Corner allocations per `integrate` pass (a static batch of L*8 keys each): a typical frame
     # of the city brings ~1700 new voxels (max ~6000); the first frame ~20000 takes 3 passes.
@@ -102,6 +103,7 @@ class N3Static:
             preprocess=cfg.preprocess if cfg.preprocess.device else None,
             evidence=cfg.evidence.enabled and cfg.preprocess.image_rows > 0, evidence_margin=cfg.evidence.margin_m,
             void_frames=cfg.evidence.void_frames, raise_pairs=cfg.evidence.raise_pairs,
+            evidence_range=cfg.evidence.max_range_m,
             image=layout_of(cfg.preprocess) if cfg.evidence.enabled or cfg.preprocess.device else None,
         )
 
