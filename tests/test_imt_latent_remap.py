@@ -3,8 +3,9 @@ with (float16 latents and Jacobians, `LatentStore`), and a remap removes a keyfr
 fuses its stored map moved by the pose change (`core.move_keyframes`). Properties: the moved stored map
 equals the map encoded at the new pose (exactly for a lattice motion, within the two-branch bound for
 any other); removal subtracts exactly what was fused; ten successive remaps end where one ends (no
-blur accumulates); the store survives a checkpoint. And the default method (reencode) reuses the frame
-program: a remap compiles nothing."""
+blur accumulates); the store survives a checkpoint. And neither method's first remap builds an XLA
+program: reencode reuses the frame programs (on a map that grew after its largest keyframe, and on many
+small keyframes that share a batch), transform's `move_step` ran while mapping."""
 from __future__ import annotations
 
 import dataclasses
