@@ -11,6 +11,7 @@ compile will take.
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -96,3 +97,27 @@ def record(name: str, seconds: float) -> None:
         os.replace(f + ".tmp", f)
     except (OSError, ValueError):
         pass
+
+
+_LOWERED = "/jax/core/compile/jaxpr_to_mlir_module_duration"   # one event per program jax has to build
+
+
+@contextlib.contextmanager
+def programs_built():
+    """Count the XLA programs built while the block runs: every jit call that found no executable in
+    memory, whether XLA compiled it or it came from this cache (the frame program's compile counter
+    cannot see an eager op's program, and XLA's compile event misses a cache hit). Yields a list
+    whose length is the count so far (one entry, the seconds of lowering, per program)."""
+    import jax
+
+    built: list = []
+
+    def listener(event: str, secs: float, **kw) -> None:
+        if event == _LOWERED:
+            built.append(secs)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield built
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)

@@ -23,3 +23,19 @@ def test_host_key_is_stable_for_one_cpu():
 
 def test_default_cache_folder_is_per_host():
     assert compile_cache.DEFAULT_DIR == os.path.join(compile_cache.ROOT_DIR, compile_cache.host_key())
+
+
+def test_programs_built_counts_each_new_program_once():
+    """The counter the remap tests rely on sees a program jax has to build (a listener on an event jax
+    no longer sends would count nothing, and every `built == []` would pass), and not a cached call."""
+    import jax
+    import numpy as np
+
+    f = jax.jit(lambda x: x * 3 + 1)
+    x = np.arange(7, dtype=np.float32)       # host input: no device-side fill program of its own
+    with compile_cache.programs_built() as built:
+        f(x)
+    assert len(built) == 1
+    with compile_cache.programs_built() as built:
+        f(x)
+    assert built == []

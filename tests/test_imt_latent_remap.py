@@ -3,8 +3,9 @@ with (float16 latents and Jacobians, `LatentStore`), and a remap removes a keyfr
 fuses its stored map moved by the pose change (`core.move_keyframes`). Properties: the moved stored map
 equals the map encoded at the new pose (exactly for a lattice motion, within the two-branch bound for
 any other); removal subtracts exactly what was fused; ten successive remaps end where one ends (no
-blur accumulates); the store survives a checkpoint. And the default method (reencode) reuses the frame
-program: a remap compiles nothing."""
+blur accumulates); the store survives a checkpoint. And neither method's first remap builds an XLA
+program: reencode reuses the frame programs (on a map that grew after its largest keyframe, and on many
+small keyframes that share a batch), transform's `move_step` ran while mapping."""
 from __future__ import annotations
 
 import dataclasses
@@ -14,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxmap.compile_cache import programs_built
 from jaxmap.errors import DataError
 from jaxmap.geometry import make_pose, random_rotation, rotation_from_axis_angle, transform_points
 from jaxmap.imt import core, load_prior
@@ -189,7 +191,9 @@ def test_the_latent_store_round_trips_and_says_which_setting_reads_it(prior, tmp
 def test_a_reencode_remap_runs_the_frame_programs_and_compiles_nothing(prior):
     """The first keyframe is the largest, and the map grows after it: the frames keep its padded size
     (`core.frame_pad`), so the last capacity has a compiled shape for every keyframe, and a remap (one
-    keyframe moved, or a rebuild) calls only programs the frames compiled."""
+    keyframe moved, or a rebuild) calls only programs the frames compiled. Nor does the rebuild's empty
+    map at the grown capacity build a program (filled on the device, it built five: a `jnp.full` per array
+    shape, caught when no earlier test made arrays of those shapes)."""
     rng = np.random.default_rng(7)
     small = scene(rng, 900)
     big = tuple(np.concatenate([a, b]) for a, b in zip(scene(rng), (small[0] + [3.0, 0.0, 0.0], small[1])))
@@ -203,9 +207,68 @@ def test_a_reencode_remap_runs_the_frame_programs_and_compiles_nothing(prior):
     new = poses.copy()
     # a loop correction's few centimetres (a large move adds voxels, and a map that grows compiles its new size)
     new[0] = make_pose(rotation_from_axis_angle(np.array([0.2, 0.1, 1.0]), 0.01), [0.03, 0.0, 0.0]) @ poses[0]
-    state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)       # remove + fuse
-    assert changed == [0]
-    new[1:] = [make_pose(np.eye(3), [0.0, 0.02, 0.0]) @ P for P in new[1:]]
-    state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)       # rebuild
+    with programs_built() as built:
+        state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)   # remove + fuse
+        assert changed == [0]
+        new[1:] = [make_pose(np.eye(3), [0.0, 0.02, 0.0]) @ P for P in new[1:]]
+        state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)   # rebuild
+        jax.block_until_ready(state.active)
     assert changed == [1, 2, 3] and state.map.table.capacity == capacity
-    assert core.step._cache_size() == programs
+    assert core.step._cache_size() == programs and built == []
+
+
+def corridor(n_kf, seed):
+    """(views, poses) of `n_kf` small keyframes (the scene at 0.6 scale, ~460 cells) along a corridor, each
+    seeing it shifted by 0.7 m."""
+    rng = np.random.default_rng(seed)
+    pts, nrm = scene(rng, 600)
+    poses = np.asarray([make_pose(random_rotation(rng), [0.0, 0.7 * k, 0.0] + rng.normal(size=3) * 0.1)
+                        for k in range(n_kf)])
+    views = [(transform_points(np.linalg.inv(P), 0.6 * pts + [0.0, 0.7 * k, 0.0]), nrm @ P[:3, :3])
+             for k, P in enumerate(poses)]
+    return views, poses
+
+
+def test_a_remap_of_many_small_keyframes_builds_no_program_and_equals_one_keyframe_at_a_time(prior):
+    """24 keyframes of ~460 cells: a remap encodes up to four in one frame-sized batch, whose (voxel,
+    keyframe) records can overflow the scratch table that sufficed for each frame. Such a batch is run
+    again one keyframe at a time with the frames' programs; growing the scratch table instead (the code
+    before) compiled a program at the first remap. Either way every keyframe goes in exactly once: the
+    remapped map equals the one re-encoded a keyframe per batch (a keyframe dropped or fused twice by the
+    retry changes it)."""
+    views, poses = corridor(24, 9)
+    state, store, hints = fused(CELLS, prior, views, poses, capacity=1 << 15)
+    assert 4 * max(store.sizes(range(24))) <= hints["frame_pad"]     # a remap's batches hold several keyframes
+    rng = np.random.default_rng(10)
+    half, new = (np.asarray([make_pose(rotation_from_axis_angle(rng.normal(size=3), 0.01), rng.normal(size=3) * 0.02)
+                             @ P for P in poses]) for _ in range(2))
+    half[:12] = poses[:12]
+    with programs_built() as built:
+        state, store, changed = core.remap(CELLS, state, store, prior, half, hints=hints)   # remove + fuse
+        assert changed == list(range(12, 24))
+        state, store, changed = core.remap(CELLS, state, store, prior, new, hints=hints)    # rebuild
+        jax.block_until_ready(state.active)
+    assert changed == list(range(24)) and built == []
+    assert "remap_group_cells" in hints      # a batch overflowed and was split (the case this test is about)
+    one_at_a_time = core.apply_keyframes(CELLS, core.init(CELLS, 1 << 15, 18), store, prior, list(range(24)), new,
+                                         np.ones(24, np.float32), {**hints, "remap_group_cells": 1})
+    assert_same_map(state, one_at_a_time)
+
+
+def test_a_transform_remap_builds_no_program(prior):
+    """`move_step` runs once while mapping at each map capacity (on padding: nothing moves), so the first
+    remap of a transformable map builds nothing; before, it compiled `move_step` there (`clear_cache`
+    makes that visible whatever ran earlier in the process)."""
+    core.move_step.clear_cache()
+    views, poses = views_and_poses(3, 8)
+    state, store, hints = fused(LATENT, prior, views, poses)
+    new = poses.copy()
+    new[2] = make_pose(rotation_from_axis_angle(np.array([0.0, 0.3, 1.0]), 0.02), [0.02, 0.0, 0.01]) @ poses[2]
+    with programs_built() as built:
+        state, store, changed = core.remap(LATENT, state, store, prior, new, hints=hints)   # remove + fuse
+        assert changed == [2]
+        state, store, changed = core.remap(LATENT, state, store, prior, poses, hints=hints)  # and back
+        jax.block_until_ready(state.active)
+    assert changed == [2] and built == []
+    # nothing moved by the runs on padding: moved back, the map is the stored maps fused as stored
+    assert_same_map(state, moved(LATENT, prior, store, range(3), poses))

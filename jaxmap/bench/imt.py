@@ -17,6 +17,10 @@
    the map (no Jacobian) and with the Jacobian at the two-branch tool's pooling, the pooled-cell count
    against the points; a remap that moves one keyframe; sizes of the map and of the keyframe store
    against the downsampled points and normals of the same keyframes (float32).
+4. The remap against the room's length (`--only scale`): rooms of 120, 300 and 600 frames (60, 150 and 300
+   keyframes), each mapped with drifted poses in a process of its own and remapped three times (every
+   keyframe: cold, the first remap of the process; half of them; every keyframe again: warm), with the
+   XLA programs built during each remap (none: a remap runs only programs that mapping compiled).
 
 Everything is written to OUT/bench.json (meshes under OUT/).
 """
@@ -222,6 +226,73 @@ def remap_method(cfg, seq, gt, out: str, method: str) -> tuple[dict, dict]:
     return rows, fig, m_gt
 
 
+SCALE_FRAMES = (120, 300, 600)   # rooms of 60, 150 and 300 keyframes (every 2nd frame fused)
+
+
+def scale_room(data: str, frames: int) -> str:
+    """The bench's room with `frames` frames on its one loop (`jaxmap synth room --frames`): `data` itself when
+    it has that many, else `DATA_<frames>frames`, made if missing."""
+    from jaxmap.synth.room import generate_room
+
+    def frames_of(path: str):
+        try:
+            with open(os.path.join(path, "meta.json")) as f:
+                return json.load(f).get("frames")
+        except (OSError, ValueError):
+            return None
+
+    if frames_of(data) == frames:
+        return data
+    path = f"{data.rstrip('/')}_{frames}frames"
+    if frames_of(path) != frames:
+        print(f"[bench] synthesizing the room with {frames} frames into {path}")
+        generate_room(path, seed=0, n_frames=frames)
+    return path
+
+
+def remap_at_scale(cfg, data: str) -> dict:
+    """One room (run in a process of its own, so that its first remap is the first of the process): the map
+    built with drifted poses through `ImtMapper.add_frame`, remapped to the true poses (cold: every keyframe
+    moves, the map is rebuilt), then half of the keyframes moved (`loop_poses`: each removed and fused back),
+    then every keyframe again (warm). Per remap: ms per moved keyframe and the XLA programs built during it
+    (`compile_cache.programs_built`: compiled, or loaded from the compile cache)."""
+    from dataclasses import replace
+
+    from jaxmap.compile_cache import programs_built
+    from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.imt.run import build_map
+
+    cfg = replace(cfg, data=replace(cfg.data, path=data, end_frame=-1))
+    seq = open_run_sequence(cfg)
+    gt = np.asarray([seq.frame(i).pose for i in range(len(seq))])
+    drifted = drift_poses(gt, *DRIFT)
+    m = build_map(cfg, seq, poses=drifted, desc=f"{len(seq)} keyframes, drifted")
+    out = {"keyframes": len(m.store), "cells_per_keyframe": m.store.cell_count() / len(m.store),
+           "frame_program_s": m.timing_summary()["median_encode_s"]}
+    for name, poses in (("cold", gt), ("half", loop_poses(gt, 2)), ("warm", drifted)):
+        with programs_built() as built:
+            out[name] = _remap_timed(m, poses)
+        out[name]["programs_built"] = len(built)
+        if name == "cold":
+            out["map_voxels"] = int(m.state.active)     # the map at the true poses
+    return out
+
+
+def remap_scaling(cfg, data: str) -> dict:
+    """`remap_at_scale` on the rooms of SCALE_FRAMES frames, each in a fresh process (spawned: the parent's
+    jax is not forked). Returns {frames: figures}."""
+    import concurrent.futures
+    import multiprocessing
+
+    out = {}
+    for frames in SCALE_FRAMES:
+        room = scale_room(data, frames)
+        with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            out[frames] = pool.submit(remap_at_scale, cfg, room).result()
+        _print_scale_row(frames, out[frames])
+    return out
+
+
 def main(args) -> int:
     from jaxmap.bench import base_overrides
     from jaxmap.config import ImtConfig, load_config, shipped_config_path
@@ -238,7 +309,7 @@ def main(args) -> int:
     seq = open_run_sequence(cfg)
     n = len(seq)
     res: dict = {"frames": n, "config": {"voxel_size_m": cfg.map.voxel_size_m, "every_frame": cfg.data.every_frame}}
-    only = set((args.only or "two_branch,recon").split(","))
+    only = set((args.only or "two_branch,recon,scale").split(","))
 
     if "two_branch" in only:
         ids = sorted(set(np.linspace(1, n - 1, 6).round().astype(int).tolist()))
@@ -257,6 +328,11 @@ def main(args) -> int:
                          **time_remap_one(m_gt, list(range(0, len(m_gt.store), 7)))}
         res["sizes"] = {**m_gt.sizes(), **store_vs_points(m_gt)}
         _print_recon(res, cfg.map.remap)
+
+    if "scale" in only:
+        _print_scale_header(cfg.map.remap)
+        res["scale"] = remap_scaling(cfg, data)
+        _print_scale_footer(res["scale"])
     with open(os.path.join(out, "bench.json"), "w") as f:
         json.dump(res, f, indent=1)
     print(f"\n[bench] written to {os.path.join(out, 'bench.json')}")
@@ -306,3 +382,25 @@ def _print_recon(res: dict, default: str) -> None:
     print(f"map: {s['map_voxels']} voxels, {s['map_bytes'] / 1e6:.1f} MB; keyframe store: {s['keyframes']} keyframes, "
           f"{s['cells']} cells, {s['store_bytes'] / 1e6:.2f} MB; their downsampled points + normals (float32): "
           f"{s['points']} points, {s['points_normals_bytes'] / 1e6:.2f} MB")
+
+
+def _print_scale_header(method: str) -> None:
+    print(f"\nremap against the room's length (map.remap: {method}; the room of --frames N, every 2nd frame fused; "
+          f"the map built with poses drifted by {DRIFT[0]:g} deg / {DRIFT[1] * 100:g} cm)")
+    print(f"{'frames':>6s} {'keyframes':>9s} {'voxels':>7s} {'cells/kf':>8s} {'frame ms':>8s} {'cold ms/kf':>10s} "
+          f"{'warm ms/kf':>10s} {'half ms/kf':>10s} {'programs built':>14s}", flush=True)
+
+
+def _print_scale_row(frames: int, r: dict) -> None:
+    built = "/".join(str(r[k]["programs_built"]) for k in ("cold", "warm", "half"))
+    print(f"{frames:6d} {r['keyframes']:9d} {r['map_voxels']:7d} {r['cells_per_keyframe']:8.0f} "
+          f"{r['frame_program_s'] * 1e3:8.1f} {r['cold']['ms_per_keyframe']:10.1f} {r['warm']['ms_per_keyframe']:10.1f} "
+          f"{r['half']['ms_per_keyframe']:10.1f} {built:>14s}", flush=True)
+
+
+def _print_scale_footer(scale: dict) -> None:
+    load = max(r[k]["load_avg"] for r in scale.values() for k in ("cold", "warm", "half"))
+    print("(voxels: the map at the true poses; cold: the first remap of the process, every keyframe moves and the map "
+          "is rebuilt; warm: the same again; half: the second half of the keyframes moves, each removed and fused back; "
+          "XLA programs built during the cold / warm / half remap; targets <= 25 ms cold and <= 20 warm on an idle "
+          f"2-core CPU; load {load:.1f})")

@@ -45,6 +45,7 @@ __all__ = [
     "DEFAULT_MAX_PROBES",
     "HashTable",
     "create",
+    "create_on_host",
     "hash_keys",
     "lookup",
     "insert",
@@ -106,6 +107,17 @@ def create(capacity: int) -> HashTable:
         rows=jnp.full((capacity,), -1, dtype=jnp.int32),  # [C]
         count=jnp.zeros((), dtype=jnp.int32),  # []
     )
+
+
+def create_on_host(capacity: int) -> HashTable:
+    """``create``, filled on the host and copied to the device (outside ``jit`` only): ``jnp.full`` compiles
+    a fill program for every new capacity, which a map that grew would otherwise compile when it is first
+    emptied (a remap's rebuild)."""
+    capacity = _check_capacity(capacity)
+    keys, rows, count = jax.device_put(
+        (np.full((capacity, 4), EMPTY, np.int32), np.full((capacity,), -1, np.int32), np.int32(0)), may_alias=False
+    )  # [C, 4], [C], []: copies the device owns (a frame program may donate them); `jnp.asarray` compiles a copy
+    return HashTable(keys=keys, rows=rows, count=count)
 
 
 def _rotl(x: jax.Array, r: int) -> jax.Array:

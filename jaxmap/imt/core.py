@@ -35,7 +35,12 @@ batches of a remap are dispatched without waiting and their stats read once (`_d
 Compiled shapes: one `step` per (map capacity, padded cell count `latent_map.bucket`, slots, scratch
 capacity). The encoder is now compiled with each map capacity (3.2 s a program on a 2-core CPU, 1.7 s
 for the encode alone), so a cold first run compiles more than separate encode / fuse programs did
-(40-frame small room: +10 s); the persistent compile cache (`jaxmap.compile_cache`) keeps them.
+(40-frame small room: +10 s); the persistent compile cache (`jaxmap.compile_cache`) keeps them. A
+remap builds no program of its own: the frames leave `step` compiled at the map's capacity and pad,
+the encode runs only the chunks that hold cells (so a keyframe costs its own cells, not the largest
+frame's pad), an empty map is filled on the host, and in "transform" mode each frame at a new capacity
+runs `move_step` once on padding. Only a remap that outgrows the map (the transform's splats spread a
+stored voxel over 8) compiles the grown capacity's programs.
 """
 from __future__ import annotations
 
@@ -114,7 +119,7 @@ class StepStats(NamedTuple):
 def init(static: ImtStatic, capacity: int, channels: int) -> ImtState:
     """An empty map with a `capacity`-slot table (a power of two, >= 1024)."""
     cap = 1 << max(10, int(np.ceil(np.log2(max(capacity, 2)))))
-    return ImtState(lm.empty(static.voxel_size, cap, channels), jnp.zeros((), jnp.int32))
+    return ImtState(lm.empty(static.voxel_size, cap, channels), jax.device_put(np.int32(0)))
 
 
 @jax.jit
@@ -266,18 +271,18 @@ def run(static: ImtStatic, state: ImtState, prior, batch: CellBatch, hints: dict
     return _until_in(call, state, more_scratch, log_growth)
 
 
-def _dispatch_all(state: ImtState, calls) -> ImtState:
-    """Run `calls` ((call, more_scratch) pairs, as `_until_in` takes them) one after the other without
-    waiting for their results, read all their stats once, and run those whose batch did not go in
-    again, one by one, growing what they need. The map stores sums, so the order does not matter; and
-    the host prepares the next batch while the last one runs."""
+def _dispatch_all(state: ImtState, items) -> ImtState:
+    """Run the calls of `items` ((call, retry) pairs: `call(state)` is a step, `retry(state, stats)` puts
+    its batch in after it did not go in) one after the other without waiting for their results, read all
+    their stats once, and retry those whose batch did not go in, one by one. The map stores sums, so the
+    order does not matter; and the host prepares the next batch while the last one runs."""
     pending = []
-    for call, more_scratch in calls:
+    for call, retry in items:
         state, stats, _ = call(state)
-        pending.append((call, more_scratch, stats))
-    for (call, more_scratch, _), stats in zip(pending, jax.device_get([p[2] for p in pending])):
+        pending.append((retry, stats))
+    for (retry, _), stats in zip(pending, jax.device_get([p[1] for p in pending])):
         if not stats.ok:
-            state, _, _ = _until_in(call, state, more_scratch, False)
+            state = retry(state, stats)
     return state
 
 
@@ -316,12 +321,26 @@ def integrate(static: ImtStatic, state: ImtState, store, prior, cells, pose, fra
         batch = CellBatch(lm.pad(pts, n_pad, np.float32), lm.pad(nrm, n_pad, np.float32),
                           lm.pad(cnt, n_pad, np.float32), np.zeros(n_pad, np.int32), sg)
         state, stats, local = run(static, state, prior, batch, hints)
-        return state, store.add(frame, *local, pose), stats
+        return _move_step_ready(static, state, hints), store.add(frame, *local, pose), stats
     store = store.add(frame, *cells, pose)
     k = len(store) - 1
     batch = cell_batch(store, [k], store.poses()[k:], [1.0], n_pad, FRAME_SLOTS)
     state, stats, _ = run(static, state, prior, batch, hints)
     return state, store, stats
+
+
+def _move_step_ready(static: ImtStatic, state: ImtState, hints: dict) -> ImtState:
+    """The state after `move_step` ran once on padding (nothing moves) at a map capacity it has not run at
+    yet (recorded in `hints`): a remap of the map (`move_keyframes`) then compiles nothing, as the frames
+    leave `step` compiled for `apply_keyframes`."""
+    key = ("move_step", state.map.table.capacity)
+    if key not in hints:
+        hints[key] = True
+        empty = [((3,), np.int32), ((state.map.channels, 3), COMPACT), ((state.map.channels, 3, 3), COMPACT),
+                 ((), np.float32), ((), np.float32), ((3, 4), np.float32), ((), bool)]
+        rows = RowBatch(*(lm.pad(np.zeros((0,) + shape, dt), MOVE_ROWS, dt) for shape, dt in empty))
+        state, _, _ = move_step(static, state, rows)
+    return state
 
 
 def _groups(sizes: list[int], max_cells: int, max_slots: int):
@@ -340,19 +359,31 @@ def apply_keyframes(static: ImtStatic, state: ImtState, store: KeyframeStore, pr
                     hints: dict) -> ImtState:
     """Fuse (sign +1) or remove (-1) the contributions of keyframes `ids` at `poses` by re-encoding their
     cells, with FRAME_SLOTS slots and padded to the cell counts the frames were padded to at this map
-    capacity (`hints` records them): the frame program, already compiled, encodes them."""
+    capacity (`hints` records them): the frame program, already compiled, encodes them. Consecutive
+    keyframes share a batch up to the largest of those counts; a batch whose records overflow the frames'
+    scratch table is run again one keyframe at a time."""
     sizes = store.sizes(ids)
     cap = state.map.table.capacity
     pads = sorted(k[2] for k in hints if isinstance(k, tuple) and k[0] == "compiled" and k[1] == cap)
 
-    def calls():
-        for sl in _groups(sizes, max(pads + [0]), FRAME_SLOTS):
-            # a keyframe larger than every frame padded at this capacity (fused before the map grew) compiles one shape
-            n_pad = next((p for p in pads if p >= sum(sizes[sl])), lm.bucket(sum(sizes[sl])))
-            yield _encode_call(static, prior, cell_batch(store, ids[sl], poses[sl], signs[sl], n_pad, FRAME_SLOTS),
-                               hints)
+    def batch(sl: slice):
+        # a keyframe larger than every frame padded at this capacity (fused before the map grew) compiles one shape
+        n_pad = next((p for p in pads if p >= sum(sizes[sl])), lm.bucket(sum(sizes[sl])))
+        call, more_scratch = _encode_call(static, prior, cell_batch(store, ids[sl], poses[sl], signs[sl], n_pad,
+                                                                    FRAME_SLOTS), hints)
 
-    return _dispatch_all(state, calls())
+        def retry(s: ImtState, stats) -> ImtState:
+            if stats.encode_overflow and sl.stop - sl.start > 1:
+                # several keyframes hold more (voxel, keyframe) records than one frame: each alone, as the
+                # frames were encoded, rather than a bigger scratch table (a compile); later remaps group fewer
+                hints["remap_group_cells"] = min(hints.get("remap_group_cells", n_pad), sum(sizes[sl]) // 2)
+                return _dispatch_all(s, (batch(slice(k, k + 1)) for k in range(sl.start, sl.stop)))
+            return _until_in(call, s, more_scratch, False)[0]
+
+        return call, retry
+
+    group_cells = min(max(pads + [0]), hints.get("remap_group_cells", hashing.MAX_CAPACITY))
+    return _dispatch_all(state, (batch(sl) for sl in _groups(sizes, group_cells, FRAME_SLOTS)))
 
 
 def move_keyframes(static: ImtStatic, state: ImtState, store: LatentStore, ids, poses, signs) -> ImtState:
@@ -369,7 +400,8 @@ def move_keyframes(static: ImtStatic, state: ImtState, store: LatentStore, ids, 
                 part = RowBatch(*(lm.pad(x[:MOVE_ROWS], MOVE_ROWS, x.dtype) for x in rows))
                 pending = [RowBatch(*(x[MOVE_ROWS:] for x in rows))]
                 n = len(pending[0].weight)
-                yield (lambda s, part=part: move_step(static, s, part)), _no_scratch
+                call = lambda s, part=part: move_step(static, s, part)  # noqa: E731
+                yield call, lambda s, stats, call=call: _until_in(call, s, _no_scratch, False)[0]
 
     return _dispatch_all(state, calls())
 
@@ -404,7 +436,8 @@ def remap(static: ImtStatic, state: ImtState, store, prior, new_poses, opts: Rem
     else:
         # removal and fusion of a keyframe side by side: its -w and +w land in one scatter
         ids = [k for k in changed for _ in (0, 1)]
-        poses = np.stack([P for k in changed for P in (store.poses()[k], new_poses[k])])
+        fused = store.poses()
+        poses = np.stack([P for k in changed for P in (fused[k], new_poses[k])])
         signs = np.tile(np.array([-1.0, 1.0], np.float32), len(changed))
     if static.remap == "transform":
         state = move_keyframes(static, state, store, ids, poses, signs)

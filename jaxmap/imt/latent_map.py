@@ -168,19 +168,17 @@ def voxel_keys(coords, level=None):
 
 
 def empty(voxel_size: float, capacity: int = 1024, channels: int = 18, with_jacobian: bool = False) -> LatentMap:
-    """An empty map with a `capacity`-slot table (a power of two) and `capacity // 2` rows."""
+    """An empty map with a `capacity`-slot table (a power of two) and `capacity // 2` rows. Filled on the host
+    and copied (outside jit only): a device fill compiles a program per shape, at the first remap of a map
+    that grew."""
     if not voxel_size > 0:
         raise ValueError(f"voxel_size must be positive, got {voxel_size}")
-    table = hashing.create(capacity)
+    table = hashing.create_on_host(capacity)
     r = table.capacity // 2
-    return LatentMap(
-        table=table,
-        coords=jnp.full((r, 3), hashing.EMPTY, jnp.int32),
-        latent_sum=jnp.zeros((r, channels, 3), jnp.float32),
-        weight=jnp.zeros((r,), jnp.float32),
-        jac_sum=jnp.zeros((r, channels, 3, 3), jnp.float32) if with_jacobian else None,
-        voxel_size=float(voxel_size),
-    )
+    coords, latent_sum, weight, jac_sum = jax.device_put(
+        (np.full((r, 3), hashing.EMPTY, np.int32), np.zeros((r, channels, 3), np.float32), np.zeros((r,), np.float32),
+         np.zeros((r, channels, 3, 3), np.float32) if with_jacobian else None), may_alias=False)
+    return LatentMap(table, coords, latent_sum, weight, jac_sum, float(voxel_size))
 
 
 @functools.partial(jax.jit, static_argnums=1)
@@ -356,8 +354,13 @@ def encode_pairs(prior, cells, normals, counts, level, min_points, voxel_size: f
 
     width, size = (4, _JAC_CHUNK) if with_jacobian else (1, _CHUNK)
     acc = jnp.zeros((r, c, 3, width), jnp.float32)
-    acc, _ = jax.lax.scan(step, acc, (cells.reshape(-1, size, 3), normals.reshape(-1, size, 3),
-                                      wp.reshape(-1, size * 8), seg.reshape(-1, size * 8)))
+    chunks = (cells.reshape(-1, size, 3), normals.reshape(-1, size, 3), wp.reshape(-1, size * 8),
+              seg.reshape(-1, size * 8))
+    # only the chunks up to the last cell with a count run the encoder: the padding after it (a frame padded
+    # to the largest frame so far, `core.frame_pad`) adds nothing, and an encode costs its own cells
+    last = jnp.max(jnp.where(counts > 0, jnp.arange(n, dtype=jnp.int32) + 1, 0))
+    acc = jax.lax.fori_loop(0, (last + size - 1) // size,
+                            lambda i, a: step(a, jax.tree_util.tree_map(lambda x: x[i], chunks))[0], acc)
     keep = count >= min_points
     coords = jnp.full((r, 3), hashing.EMPTY, jnp.int32).at[seg].set(vox, mode="drop")
     levels = jnp.full((r,), -1, jnp.int32).at[seg].set(lev, mode="drop")

@@ -54,7 +54,8 @@ class ImtMapper:
         self.state = core.init(self.static, cfg.map.initial_capacity, self.prior.latent_channels)
         self.store = self.static.new_store()   # KeyframeStore (remap: reencode) or LatentStore (transform)
         # what the programs learnt: padded cell count -> encode table size that sufficed (grown on overflow);
-        # ("compiled", map capacity, padded cell count) -> the step shapes run; "frame_pad" -> the frames' pad
+        # ("compiled", map capacity, padded cell count) -> the step shapes run; "frame_pad" -> the frames' pad;
+        # ("move_step", map capacity) -> move_step ran (transform); "remap_group_cells" -> cells a remap batch holds
         self.hints: dict = {}
         self.timings: list[dict] = []
         self.remaps: list[dict] = []
