@@ -130,3 +130,22 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
                          {"grid_s1_traffic": {"dynamic_points": got}})
     printed = capsys.readouterr().out
     assert "SA %" in printed and f"SA {got['sa_percent']:.2f} %, DA {got['da_percent']:.2f} %" in printed
+
+
+def test_map_sense_counts_the_points_whose_voxels_the_final_map_holds():
+    """The map sense (DynamicMap's, of the output map): a point is removed when its leaf voxel is void at
+    the end, whatever happened in its frame. Two frames, four voxels; the second voxel turns void."""
+    from jaxmap.metrics.dynamic import voxel_keys
+
+    vox = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [-3, 5, 7]])
+    sc = PointScores()
+    # frame 1: a static point in voxel 0, two dynamic ones in voxel 1 (trained on), one static in voxel 3
+    sc.add(np.array([False, True, True, False]), None, voxel_keys(vox[[0, 1, 1, 3]]))
+    # frame 2: a dynamic point in voxel 2 (not trained on: it fell in void), a static one in voxel 1
+    sc.add(np.array([True, False]), np.array([False, True]), voxel_keys(vox[[2, 1]]))
+    r = sc.result(voxel_keys(vox[[1, 2]]))
+    assert r["sense"] == "map"
+    assert (r["static_points"], r["static_kept"], r["dynamic_points"], r["dynamic_removed"]) == (3, 2, 3, 3)
+    assert r["trained"]["dynamic_removed"] == 1 and r["trained"]["static_kept"] == 3
+    assert "of the final map" in format_scores(r) and "trained on: SA 100.00 %, DA 33.33 %" in format_scores(r)
+    assert sc.result()["sense"] == "trained"   # no map: the trained sense alone

@@ -1,12 +1,17 @@
 """The point scores of the dynamic-removal field (KTH's DynamicMap benchmark): of the scan points a mapper
-trained on, how many static ones it kept and how many dynamic ones it removed.
+received, how many static ones its map kept and how many dynamic ones it removed.
 
     SA (static accuracy)  = static points kept / static points        (%)
     DA (dynamic accuracy) = dynamic points removed / dynamic points   (%)
 
 over the points of every mapped frame as the mapper received them (after its preprocessing: the rows of
-the frame's prepared points, sensor frame, in order), where "kept" means the point produced training
-samples (`N3Mapper.add_frame(...)["kept"]`, [M] bool; a mapper that does not report it kept them all).
+the frame's prepared points, sensor frame, in order), in two senses:
+  map      (DynamicMap's: the output map) a point is kept when the map still holds its place: its leaf
+           voxel is not void at the end of the run (free-space evidence, `jaxmap.n3.evidence`; a map
+           without evidence keeps every point). A car that drove off is removed, a car still there at the
+           last frame is kept, as a static map built from the whole sequence would keep it.
+  trained  a point is kept when it produced training samples in its frame (`N3Mapper.add_frame(...)["kept"]`,
+           [M] bool; a mapper that does not report it trained on them all): what the online map learnt from.
 
 A point is dynamic when it lies inside one of its frame's moving-object boxes (`jaxmap.moving`,
 moving_objects.json: indexed by the sequence's own frame number), each box grown by DYNAMIC_INFLATE_M
@@ -72,18 +77,51 @@ def labeller_for(data_dir) -> Labeller | None:
     return Labeller(objects) if objects is not None else None
 
 
+def voxel_keys(coords: np.ndarray) -> np.ndarray:
+    """[N] int64 keys of integer voxel coordinates [N, 3] (each within +-2^20 voxels of the map origin)."""
+    c = np.asarray(coords, np.int64) + (1 << 20)
+    return (c[:, 0] << 42) | (c[:, 1] << 21) | c[:, 2]
+
+
+class _KeyCounts:
+    """Points per voxel key (static and dynamic), merged every few frames so memory follows the voxels."""
+
+    def __init__(self):
+        self.keys = np.zeros(0, np.int64)
+        self.counts = np.zeros((0, 2), np.int64)
+        self.pending: list = []
+
+    def add(self, keys: np.ndarray, dynamic: np.ndarray) -> None:
+        self.pending.append((keys, dynamic))
+        if len(self.pending) >= 32:
+            self.merge()
+
+    def merge(self) -> None:
+        if not self.pending:
+            return
+        k = np.concatenate([self.keys] + [p[0] for p in self.pending])
+        c = np.concatenate([self.counts] + [np.stack([~p[1], p[1]], 1).astype(np.int64) for p in self.pending])
+        self.keys, inv = np.unique(k, return_inverse=True)
+        self.counts = np.zeros((len(self.keys), 2), np.int64)
+        np.add.at(self.counts, inv.reshape(-1), c)
+        self.pending = []
+
+
 @dataclasses.dataclass
 class PointScores:
-    """The four counts over the frames added so far (a running sum, host side)."""
+    """The counts over the frames added so far (running sums, host side), `trained` sense; the `map` sense
+    from the points' voxel keys once the final map says which voxels are void (`result`)."""
 
     static_points: int = 0
     static_kept: int = 0
     dynamic_points: int = 0
     dynamic_removed: int = 0
     frames: int = 0
+    by_voxel: _KeyCounts = dataclasses.field(default_factory=_KeyCounts, repr=False)
 
-    def add(self, dynamic: np.ndarray, kept: np.ndarray | None = None) -> None:
-        """One frame: dynamic [M] bool labels, kept [M] bool (None: every point kept)."""
+    def add(self, dynamic: np.ndarray, kept: np.ndarray | None = None, keys: np.ndarray | None = None) -> None:
+        """One frame: dynamic [M] bool labels, kept [M] bool (None: every point trained on), keys [M] int64
+        the points' leaf-voxel keys in the map (`voxel_keys`; None: no map sense)."""
         dynamic = np.asarray(dynamic, bool)
         kept = np.ones(len(dynamic), bool) if kept is None else np.asarray(kept, bool)
         if kept.shape != dynamic.shape:
@@ -95,15 +133,32 @@ class PointScores:
         self.dynamic_points += n_dyn
         self.dynamic_removed += int((~kept & dynamic).sum())
         self.frames += 1
+        if keys is not None:
+            self.by_voxel.add(np.asarray(keys, np.int64), dynamic)
 
-    def result(self) -> dict:
-        """{"sa_percent", "da_percent" (nan without points of that kind), the four counts, "frames",
+    def result(self, void_keys: np.ndarray | None = None) -> dict:
+        """{"sa_percent", "da_percent" (the map sense when void_keys, [K] int64 keys of the final map's void
+        voxels, is given and keys were added; else the trained sense), "trained": {...}, the counts, "frames",
         "inflate_m", "ground_m"}: what metrics.json holds as "dynamic_points"."""
         nan = float("nan")
-        sa = 100.0 * self.static_kept / self.static_points if self.static_points else nan
-        da = 100.0 * self.dynamic_removed / self.dynamic_points if self.dynamic_points else nan
-        return {"sa_percent": sa, "da_percent": da, **dataclasses.asdict(self),
-                "inflate_m": DYNAMIC_INFLATE_M, "ground_m": GROUND_CLEARANCE_M}
+
+        def pct(a, b):
+            return 100.0 * a / b if b else nan
+
+        counts = {k: getattr(self, k) for k in ("static_points", "static_kept", "dynamic_points", "dynamic_removed")}
+        trained = {"sa_percent": pct(self.static_kept, self.static_points),
+                   "da_percent": pct(self.dynamic_removed, self.dynamic_points), **counts}
+        out = {**trained, "sense": "trained"}
+        self.by_voxel.merge()
+        if void_keys is not None and len(self.by_voxel.keys):
+            gone = np.isin(self.by_voxel.keys, np.asarray(void_keys, np.int64))
+            st, dy = self.by_voxel.counts[:, 0], self.by_voxel.counts[:, 1]
+            counts = {"static_points": int(st.sum()), "static_kept": int(st[~gone].sum()),
+                      "dynamic_points": int(dy.sum()), "dynamic_removed": int(dy[gone].sum())}
+            out = {"sa_percent": pct(counts["static_kept"], counts["static_points"]),
+                   "da_percent": pct(counts["dynamic_removed"], counts["dynamic_points"]), **counts, "sense": "map"}
+        return {**out, "trained": trained, "frames": self.frames, "inflate_m": DYNAMIC_INFLATE_M,
+                "ground_m": GROUND_CLEARANCE_M}
 
 
 def scores_of_run(mesh_path, data_dir) -> dict | None:
@@ -137,6 +192,11 @@ def scores_of_run(mesh_path, data_dir) -> dict | None:
 
 def format_scores(s: dict) -> str:
     """One line for `jaxmap eval` and the run summary."""
-    return (f"dynamic points (DynamicMap, of the points trained on): SA {s['sa_percent']:.2f} % "
+    what = "of the final map" if s.get("sense") == "map" else "of the points trained on"
+    line = (f"dynamic points (DynamicMap, {what}): SA {s['sa_percent']:.2f} % "
             f"({s['static_kept']} of {s['static_points']} static kept), DA {s['da_percent']:.2f} % "
             f"({s['dynamic_removed']} of {s['dynamic_points']} dynamic removed), {s['frames']} frames")
+    t = s.get("trained")
+    if s.get("sense") == "map" and t:
+        line += f"; trained on: SA {t['sa_percent']:.2f} %, DA {t['da_percent']:.2f} %"
+    return line

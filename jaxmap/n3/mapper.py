@@ -19,6 +19,7 @@ from jaxmap.frame_loop import medians
 from jaxmap.n3 import core, scan
 from jaxmap.n3.query import extract_mesh_of, query_world
 from jaxmap.n3 import window
+from jaxmap.n3.evidence import void as void_of
 from jaxmap.sizes import pow2
 from jaxmap.viewer import copy_arrays
 
@@ -159,6 +160,21 @@ class N3Mapper:
             return float("nan")
         st = self.state.store
         return float(core.frames_held_jit(st, st.window_ids, st.window_n, min_frames))
+
+    def voxel_coords(self, points_s, pose) -> np.ndarray:
+        """[M, 3] int64 leaf voxels (map frame, as `N3State.voxel_coord` counts them) of sensor-frame points
+        [M, 3] at pose [4, 4] T_world_sensor (host side; the map frame as `scan.to_batch` makes it)."""
+        T = np.asarray(pose, np.float64)
+        p = (np.asarray(points_s, np.float64) @ T[:3, :3].T + (T[:3, 3] - self._origin)).astype(np.float32)
+        return np.floor(p.astype(np.float64) / np.float32(self.static.leaf)).astype(np.int64)
+
+    def void_voxels(self) -> np.ndarray:
+        """[K, 3] int32 leaf voxels (map frame) that are void (free-space evidence; none when it is off)."""
+        if self.state.evidence is None:
+            return np.zeros((0, 3), np.int32)
+        n = int(self.state.voxels.count)
+        void = np.asarray(void_of(self.state.evidence, self.static.void_frames)[:n])
+        return np.asarray(self.state.voxel_coord[:n])[void]
 
     @property
     def origin(self) -> np.ndarray:

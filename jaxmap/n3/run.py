@@ -77,7 +77,7 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
-                      point_scores=scores.result() if scores is not None else None)
+                      point_scores=scores.result(dynamic.voxel_keys(mapper.void_voxels())) if scores is not None else None)
 
 
 def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None) -> Frame:
@@ -98,11 +98,12 @@ def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None) 
 def map_frame(mapper: N3Mapper, frame: Frame, scores: dynamic.PointScores | None = None) -> tuple[dict, np.ndarray]:
     """The N3 step of the frame loop: the prepared frame into the map, at its pose; with `scores`, its
     labelled points counted against those the mapper trained on (its record's "kept", [M] bool over the
-    rows of frame.points; all when it does not say). "kept" leaves the record (which goes to timing.json)."""
+    rows of frame.points; all when it does not say) and by leaf voxel (the final map says which are void).
+    "kept" leaves the record (which goes to timing.json)."""
     info = mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose, frame.image))
     kept = info.pop("kept", None)
     if scores is not None and frame.dynamic is not None:
-        scores.add(frame.dynamic, kept)
+        scores.add(frame.dynamic, kept, dynamic.voxel_keys(mapper.voxel_coords(frame.points, frame.pose)))
     return info, frame.pose
 
 
