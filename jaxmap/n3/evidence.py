@@ -38,7 +38,7 @@ from jaxmap.grid.compaction import nonzero_fixed
 
 RUN_CAP = 1 << 14          # free_run saturates here (int32; a voxel seen free for ever stays void)
 RAISE_PER_FRAME = 4096     # voxels whose pairs are raised per frame (the rest next frame: `raised` says)
-TESTED_PER_FRAME = 1 << 17  # voxels tested against a frame's range image at most (those within
+TESTED_PER_FRAME = 1 << 18  # voxels tested against a frame's range image at most (those within
                             # `evidence.max_range_m`; when more are, a different part of them each frame)
 
 
