@@ -42,12 +42,12 @@ def _hall_with_a_box_that_leaves(extra, frames_with=5, frames_without=21):
 
 
 # Faces left in the box's place. The count is chaotic: any change of the float rounding moves it.
-# Measured (26 frames, 20 iterations; 87 runs of the defaults, 57 without carving, 33 with the
-# pre-issue rule) over train.seed 0-4, the box moved by 1 mm along x, y, z, the scan rounded to 1 mm
-# or moved by 1 float32 ulp, each under XLA_FLAGS none, --xla_cpu_enable_fast_math=true/false,
-# --xla_cpu_max_isa=AVX2 (no AVX-512) and both: carving 0-32 faces (0 on most; 16 on issue 35's AMD EPYC),
-# no carving (window.carve=false) 171-580, the pre-issue rule (sampling.free_ray_n=0) 690-722. The
-# bound sits ~2.3x from both sides.
+# Measured (26 frames, 20 iterations) over train.seed 0-4, the box moved by 1 mm along x, y, z, the scan
+# rounded to 1 mm or moved by 1 float32 ulp, each under XLA_FLAGS none, --xla_cpu_enable_fast_math=true
+# or false, --xla_cpu_max_isa=AVX2 (no AVX-512) and both: carving 0-32 faces (87 runs; 0 on most, 16 on
+# issue 35's AMD EPYC), no carving (window.carve=false) 171-580 (27 runs; 94-564 in 57 runs counting
+# from x = 4 on), the pre-issue rule (sampling.free_ray_n=0) 690-722 (3 runs; 465-649 from x = 4 on,
+# 33 runs). The bound sits ~2.3x from both sides.
 GHOST_FACES = 75
 
 
