@@ -5,17 +5,23 @@ An xdist worker runs half the suite in one process, and every XLA:CPU executable
 code in memory maps (a frame program about 2,000): kept for the whole session they reached 64,400 of
 the 65,530 maps Linux allows a process (vm.max_map_count), and past it XLA aborts the worker inside a
 compile or a cache load (`Fatal Python error: Aborted`, seen in CI). Each worker compiles into its own
-folder of the user's per-CPU XLA cache (`jaxmap.compile_cache`): warm, the cache saves half the
-suite's time, and no two processes write one entry."""
+folder, `tests-<worker>`, of the XLA cache that `JAXMAP_CACHE_DIR` names (the user's per-CPU cache of
+`jaxmap.compile_cache` when unset; empty: no cache), so no two processes write one entry. `make test`
+points it at an empty folder made for the run, as a new machine has; warm, the cache saves half the
+suite's time (`make test TEST_CACHE=warm`)."""
 import os
 
 import pytest
 
 from jaxmap import compile_cache  # noqa: E402  (jax itself is not imported yet: the environment still decides)
 
-_WORKER_CACHE = os.path.join(compile_cache.DEFAULT_DIR, "tests-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
-os.environ["JAXMAP_CACHE_DIR"] = _WORKER_CACHE        # for the CLI subprocesses the tests start
-os.environ["JAX_COMPILATION_CACHE_DIR"] = _WORKER_CACHE  # for this process
+_CACHE = compile_cache.cache_dir()
+if _CACHE:
+    _WORKER_CACHE = os.path.join(_CACHE, "tests-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
+    os.environ["JAXMAP_CACHE_DIR"] = _WORKER_CACHE        # for the CLI subprocesses and notebook kernels
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _WORKER_CACHE  # for this process
+else:  # JAXMAP_CACHE_DIR= : every program compiles, in every process
+    os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -178,25 +178,32 @@ def test_ranks_within_slot_equal_a_stable_sort():
 
 
 def test_growth_from_tiny_capacities_loses_nothing():
-    """A map that starts far too small grows its voxel table, feature rows and store many times
-    (failed passes retried) and ends with exactly the voxels, corner rows and pairs of a map that
-    never grew."""
+    """A map that starts too small for the first frame grows its voxel table, feature rows and store
+    (a failed pass retried, then growth between frames) and ends with exactly the voxels, corner rows
+    and pairs of a map that never grew."""
     cfg = _cfg(["train.iters=2"])
-    frames = _frames(5, step=2.0)
-    big = N3Mapper(cfg)
+    frames = _frames(2, step=2.0)
     static = core.N3Static.from_config(cfg)
-    # Small enough that voxels, feature rows and store blocks all run out during the 5 frames (each
-    # growth recompiles the frame program, so not smaller than that).
-    tiny = core.Capacities(voxel_slots=2048, voxel_rows=1024, corner_slots=4096, feature_rows=2048, store_blocks=512,
-                           pairs_per_block=cfg.window.pairs_per_voxel)
+    # The first frame brings 4.6k voxels, 19k corner rows and 4.6k blocks: the growing map starts with
+    # room for the voxels only, so its first pass fails on the corners and the store; it grows all three
+    # (the voxel table for the headroom) and, after the frame, the feature table and the store again,
+    # to the sizes the map that never grows has from the start and keeps for both frames. Every size
+    # compiles the frame program, so there are three (measured: seven with five frames from 1024 rows).
+    ended = core.Capacities(voxel_slots=32768, voxel_rows=16384, corner_slots=131072, feature_rows=65536,
+                            store_blocks=16384, pairs_per_block=cfg.window.pairs_per_voxel)
+    tiny = core.Capacities(voxel_slots=16384, voxel_rows=8192, corner_slots=32768, feature_rows=16384,
+                           store_blocks=4096, pairs_per_block=cfg.window.pairs_per_voxel)
+    big = N3Mapper(cfg, state=core.init_state(static, cfg, ended))
     small = N3Mapper(cfg, state=core.init_state(static, cfg, tiny))
     passes = 0
     for pts, pose in frames:
-        big.add_frame(pts, pose)
+        assert big.add_frame(pts, pose)["passes"] == 1
         passes += small.add_frame(pts, pose)["passes"]
+    assert core.Capacities.of(big.state) == ended  # it never grew
     assert passes > len(frames)  # some passes failed and were retried after growing
     caps = core.Capacities.of(small.state)
-    assert caps.voxel_rows > 1024 and caps.feature_rows > 2048 and caps.store_blocks > 512
+    assert caps.voxel_rows > tiny.voxel_rows and caps.feature_rows > tiny.feature_rows
+    assert caps.store_blocks > tiny.store_blocks
     a, b = big.state, small.state
     n = int(a.voxels.count)
     assert int(b.voxels.count) == n and int(b.corners.count) == int(a.corners.count)

@@ -43,6 +43,20 @@ def _code_cells(nb):
     return [c for c in nb.cells if c.cell_type == "code"]
 
 
+def _slowest_cell_s(nb) -> float:
+    """Seconds of the slowest executed cell, from the timestamps nbclient records in its metadata."""
+    from datetime import datetime
+
+    worst = 0.0
+    for c in _code_cells(nb):
+        t = c.get("metadata", {}).get("execution", {})
+        if "iopub.execute_input" in t and "shell.execute_reply" in t:
+            start, end = (datetime.fromisoformat(t[k].replace("Z", "+00:00"))
+                          for k in ("iopub.execute_input", "shell.execute_reply"))
+            worst = max(worst, (end - start).total_seconds())
+    return worst
+
+
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=IDS)
 def test_notebook_is_stripped_and_has_a_small_cell(path):
     nb = nbformat.read(path, as_version=4)
@@ -79,7 +93,8 @@ def test_notebook_runs_in_small_mode(path, kernel_dir, tmp_path, monkeypatch):
     except CellExecutionError as e:
         pytest.fail(f"{os.path.basename(path)} failed in SMALL mode:\n{e}", pytrace=False)
     elapsed = time.perf_counter() - t0
-    print(f"{os.path.basename(path)}: {elapsed:.0f} s in SMALL mode")
+    print(f"{os.path.basename(path)}: {elapsed:.0f} s in SMALL mode, its slowest cell {_slowest_cell_s(nb):.0f} s "
+          f"(timeout {CELL_TIMEOUT_S} s)")
     pngs = sorted(p.name for p in out.glob("*.png"))
     assert pngs, f"{os.path.basename(path)} saved no PNG into JAXMAP_NB_OUT ({out})"
     for p in out.glob("*.png"):
