@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmap.geometry import SE3
 from jaxmap.n3.state import N3Static
 from jaxmap.preprocess_device import crop_mask, preprocess_scan, voxel_keep
 
@@ -39,9 +40,8 @@ def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, 
     their input order moved to the map frame and packed into `rows` rows (padding as `scan.to_batch`).
     Returns (ScanBatch [rows], points kept [] int32, overflow [] bool: more kept points than rows)."""
     pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw.valid, static.preprocess, rows)
-    # Elementwise, not a matmul: a GPU's float32 matmul may round through TF32 (centimetres at 20 m).
-    pts = jnp.sum(pts_s[:, None, :] * raw.rotation[None], axis=-1) + raw.translation
-    nrm = jnp.sum(nrm_s[:, None, :] * raw.rotation[None], axis=-1)
+    T_m_s = SE3.from_rotation_and_translation(raw.rotation, raw.translation)  # (full float32 on a GPU: `geometry`)
+    pts, nrm = T_m_s.apply(pts_s), T_m_s.rotation().apply(nrm_s)
     pts = jnp.where(valid[:, None], pts, raw.translation + 1.0)
     nrm = jnp.where(valid[:, None], nrm, np.array([0.0, 0.0, 1.0], np.float32))
     return ScanBatch(pts, nrm, valid, raw.translation), kept, kept > rows
