@@ -26,6 +26,41 @@ from jaxmap.grid.features import CORNER_OFFSETS
 from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span
 
 INT_MAX = jnp.iinfo(jnp.int32).max
+DEVICE_NORMALS = "cube_knn"  # what `normals: knn` (the host's k-d tree) becomes on the device
+_SAID: set = set()           # the choices `resolve` has logged in this process
+
+
+def resolve(p, backend: str | None = None):
+    """`p` (a PreprocessConfig) with `device` decided, "true" or "false": "auto" is the device where jax
+    runs on a GPU or TPU (there the frame program preprocesses a city scan in a few ms, the host's
+    k-d tree normals take ~100 ms a scan and would hold the map back) unless outlier removal is on
+    (host only), and the host on a CPU (the same cores either way: the host's normals are ~1 % better
+    on the validation suite). On the device, `normals: knn` (the host's) becomes cube_knn, the k
+    nearest among a hashed-grid cube. The choice is logged once. backend: jax.default_backend()."""
+    import dataclasses
+    import logging
+
+    if p.device == "false" or (p.device == "true" and p.normals != "knn"):
+        return p
+    backend = backend or jax.default_backend()
+    why = ""
+    if p.device == "auto":
+        if backend == "cpu":
+            return dataclasses.replace(p, device="false")
+        if p.outlier_mad > 0:
+            why = f"preprocessing on the host: preprocess.outlier_mad={p.outlier_mad:g} runs there only"
+            p = dataclasses.replace(p, device="false")
+        else:
+            why = f"preprocessing on the device (jax backend {backend}; the host would hold the frame program back)"
+            p = dataclasses.replace(p, device="true")
+    if p.device == "true" and p.normals == "knn":
+        why = (why or "preprocessing on the device (preprocess.device=true)") + (
+            f"; normals {DEVICE_NORMALS} (knn runs on the host only)")
+        p = dataclasses.replace(p, normals=DEVICE_NORMALS)
+    if why and why not in _SAID:
+        _SAID.add(why)
+        logging.getLogger("jaxmap").info("%s", why)
+    return p
 
 
 def crop_mask(points, valid, *, min_range: float, max_range: float, min_z: float, max_z: float):

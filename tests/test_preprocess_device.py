@@ -132,3 +132,30 @@ def test_frame_program_maps_what_the_host_path_maps_and_grows_the_scan_rows():
     assert abs(b["loss"] - a["loss"]) <= 0.05 * a["loss"]
     for x, y in zip(jax.tree_util.tree_leaves(on_dev.state), jax.tree_util.tree_leaves(short.state)):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_auto_preprocesses_on_the_device_on_a_gpu_only_and_true_alone_works(caplog):
+    """`preprocess.device: auto` (the default) is the device on a GPU or TPU backend and the host on a
+    CPU; on the device `normals: knn` (the host's k-d tree) becomes cube_knn, and outlier removal (host
+    only) keeps auto on the host. `preprocess.device=true` alone is a valid config that maps on the
+    device (it used to be an error asking for `normals`). A resolver that ignored the backend, or left
+    knn normals to a frame program that cannot run them, fails here."""
+    from jaxmap.n3.state import N3Static
+
+    auto = load_config("configs/city.yaml").preprocess
+    assert auto.device == "auto" and auto.normals == "knn"
+    caplog.set_level("INFO", logger="jaxmap")
+    assert dev.resolve(auto, backend="cpu").device == "false"
+    on_gpu = dev.resolve(auto, backend="gpu")
+    assert (on_gpu.device, on_gpu.normals) == ("true", "cube_knn")
+    assert "preprocessing on the device (jax backend gpu" in caplog.text and "cube_knn" in caplog.text
+    with_mad = load_config("configs/city.yaml", ["preprocess.outlier_mad=6"]).preprocess
+    assert dev.resolve(with_mad, backend="gpu").device == "false"
+    grid = load_config("configs/city.yaml", ["preprocess.normals=grid"]).preprocess
+    assert dev.resolve(grid, backend="tpu").normals == "grid"          # a device method is kept
+    forced = load_config("configs/city.yaml", ["preprocess.device=true"])  # no error
+    assert forced.preprocess.device == "true"
+    static = N3Static.from_config(forced)
+    assert static.preprocess is not None and static.preprocess.normals == "cube_knn"
+    assert N3Static.from_config(load_config("configs/city.yaml")).preprocess is None  # this CPU: the host
+    assert load_config("configs/city.yaml", ["preprocess.device=false"]).preprocess.device == "false"

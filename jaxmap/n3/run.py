@@ -12,6 +12,8 @@ A run directory holds:
 """
 from __future__ import annotations
 
+import collections
+import dataclasses
 import functools
 import logging
 import os
@@ -27,64 +29,115 @@ from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.n3 import checkpoint, scan
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
-from jaxmap.n3.mapper import N3Mapper
+from jaxmap.n3.mapper import N3Mapper, origin_at
+from jaxmap.preprocess_device import resolve
 
 log = logging.getLogger("jaxmap")
 
 
 def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress: bool = True,
-                 mapper=None, evaluate: bool = True, mesh: bool = True, view: dict | None = None) -> dict:
+                 evaluate: bool = True, mesh: bool = True, view: dict | None = None) -> dict:
     """Map cfg.data.path into out_dir; returns a summary dict (paths, metrics, timings).
 
-    Frames are read and preprocessed one or two ahead in a background thread (`frame_loop.Prefetcher`),
-    so the device maps frame i while the host prepares frame i + 1. `wall_s` in the summary is
+    Frames are read, preprocessed and uploaded ahead in background threads (`frame_loop.Prefetcher`,
+    from the start, while the frame program compiles), and each frame's program is dispatched before
+    the previous one's statistics are read (`MapSteps`), so the device maps frame after frame while the
+    host prepares the next ones and keeps the books. `wall_s` in the summary is
     the wall-clock time of the mapping loop, compilation and checkpoints included: what a user waits.
     resume: continue from the newest intact checkpoint in out_dir (`resume_mapper`). Ctrl-C and SIGTERM
     (in the main thread) stop the loop after the frame being mapped, save a checkpoint and re-raise
     (`jaxmap.rundir.Interrupted`). The caller owns out_dir (`jaxmap.rundir.claim` in the CLI).
     """
     os.makedirs(out_dir, exist_ok=True)
+    cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))  # device: auto decided (config.yaml says which)
+    device = cfg.preprocess.device == "true"
     ckpt = os.path.join(out_dir, "checkpoint")
     t_start = time.perf_counter()
     n_compiles = len(COMPILE_SECONDS)
     seq = open_run_sequence(cfg)
+    load = functools.partial(prepare_frame, cfg.preprocess)
     if resume:
         mapper = resume_mapper(out_dir, cfg)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
+        if mapper.frames == 0 and len(seq):
+            mapper.place_origin(seq.frame(0).pose)
+        frames = Prefetcher(seq, mapper.frames, len(seq), load,
+                            then=scan.Uploader(mapper.origin, device, mapper.bucket))
     else:
-        if mapper is None:
-            first = seq.frame(0) if len(seq) else None
-            mapper = N3Mapper(cfg, first_scan=(first.points, first.pose) if first is not None else None)
+        # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
+        # is the first pose's, and the first prepared frame gives the program its shapes.
+        origin = origin_at(cfg, seq.frame(0).pose) if len(seq) else np.zeros(3)
+        frames = Prefetcher(seq, 0, len(seq), load, then=scan.Uploader(origin, device))
+        try:
+            mapper = N3Mapper(cfg, first_frame=frames.first())
+        except BaseException:
+            frames.close()
+            raise
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     start = mapper.frames
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
                         every=max(cfg.checkpoint_every, 1), busy=checkpoint.saving, wait=checkpoint.wait_for_saves,
-                        resume=f"jaxmap map --resume {out_dir}")
+                        resume=f"jaxmap map --resume {out_dir}",
+                        final=lambda: mapper.save(ckpt, background=True, copy=False))
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    loop = run_frames(Prefetcher(seq, start, len(seq), functools.partial(prepare_frame, cfg.preprocess)),
-                      functools.partial(map_frame, mapper), total=len(seq), start=start, progress=bar,
-                      viewer=viewer, checkpoints=saves, t_start=t_start)
+    loop = run_frames(frames, MapSteps(mapper), total=len(seq), start=start, progress=bar, viewer=viewer,
+                      checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
-    return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer)
+    return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
+                      wait_saves=checkpoint.wait_for_saves)
 
 
-def prepare_frame(cfg_preprocess, seq, i: int) -> Frame:
+def prepare_frame(cfg_preprocess, seq, i: int, poses=None) -> Frame:
     """`Prefetcher` loader of frame i: read, checked and preprocessed on the host (with `preprocess.device`
-    only read and checked: the frame program preprocesses, and `normals` is None)."""
+    true only read and checked: the frame program preprocesses, and `normals` is None); at poses[i] when
+    `poses` [N, 4, 4] is given, else at the sequence's pose."""
     fr = seq.frame(i)
-    if cfg_preprocess.device:
-        pts, pose = scan.check_frame(fr.points, fr.pose, i)
+    pose = fr.pose if poses is None else poses[i]
+    if cfg_preprocess.device == "true":
+        pts, pose = scan.check_frame(fr.points, pose, i)
         return Frame(i, int(fr.index), pts, pose)
-    pts, nrm, pose = scan.preprocess(fr.points, fr.pose, cfg_preprocess, i)
+    pts, nrm, pose = scan.preprocess(fr.points, pose, cfg_preprocess, i)
     return Frame(i, int(fr.index), pts, pose, nrm)
 
 
-def map_frame(mapper: N3Mapper, frame: Frame) -> tuple[dict, np.ndarray]:
-    """The N3 step of the frame loop: the prepared frame into the map, at its pose."""
-    return mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose)), frame.pose
+def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
+    """A new N3 map of every frame of `seq` at `poses` [N, 4, 4] (instead of the sequence's), the frames
+    read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
+    (no checkpoints). Returns (N3Mapper, frame_loop.LoopResult)."""
+    cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))
+    mapper = N3Mapper(cfg)
+    if len(seq):
+        mapper.place_origin(poses[0])
+    frames = Prefetcher(seq, 0, len(seq), functools.partial(prepare_frame, cfg.preprocess, poses=poses),
+                        then=scan.Uploader(mapper.origin, cfg.preprocess.device == "true"))
+    return mapper, run_frames(frames, MapSteps(mapper), total=len(seq), progress=Progress(desc, progress))
+
+
+class MapSteps:
+    """The N3 step of the frame loop (`frame_loop.Steps`): each frame's program is dispatched as soon as
+    its scan is on the device (`N3Mapper.submit`; the scan was prepared and uploaded ahead by
+    `prepare_frame` and `scan.Uploader`), its record comes back a frame later."""
+
+    def __init__(self, mapper: N3Mapper):
+        self.mapper = mapper
+        self._frames: collections.deque[Frame] = collections.deque()  # submitted, record not back yet
+
+    def submit(self, frame: Frame) -> list:
+        self._frames.append(frame)
+        return self._paired(self.mapper.submit(frame.batch, prepare_s=frame.prepare_s, wait_s=frame.wait_s))
+
+    def drain(self) -> list:
+        return self._paired(self.mapper.finish())
+
+    def _paired(self, records: list[dict]) -> list:
+        out = []
+        for r in records:
+            frame = self._frames.popleft()
+            out.append((frame, r, frame.pose))
+        return out
 
 
 def city_config_path() -> str | None:
