@@ -144,7 +144,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
             self.n, self.loops = 0, []
             self.odometry = type("O", (), {"velocity": np.eye(4)})()
 
-        def add_frame(self, points_s):
+        def add_frame(self, points_s, scan=None):
             k, self.n = self.n, self.n + 1
             closing = k == len(gt) - 1
             poses = gt[:k + 1] if closing else drift[:k + 1]
