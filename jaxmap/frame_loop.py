@@ -232,26 +232,7 @@ def run_frames(frames: Iterable[Frame], step, *, total: int, start: int = 0, pro
     (its `close()`, a `Prefetcher`'s threads) however the loop ends."""
     t_start = time.perf_counter() if t_start is None else t_start
     steps = step if hasattr(step, "submit") else _AtOnce(step)
-    bar = _bar(progress, total, start)
-    count = {"since_save": 0, "done": 0}
-    last = None  # the frame submitted last
-
-    def finished(items: list[Finished]) -> None:
-        for frame, record, pose in items:
-            _show(bar, progress, record, first=count["done"] == 0)
-            count["done"] += 1
-            count["since_save"] += 1
-            if viewer is not None and pose is not None:
-                viewer.on_frame(frame.index, to_world(frame.points, pose, viewer.viewer.max_points), pose, record)
-            # Written while the next frames map; if the last one is still being written (a GPU maps
-            # 10 frames faster than a map is written), the next frame tries again.
-            if (checkpoints is not None and checkpoints.every > 0 and count["since_save"] >= checkpoints.every
-                    and last.position + 1 < total and not checkpoints.busy()):
-                t0 = time.perf_counter()
-                checkpoints.save(True)
-                record["checkpoint_s"] = record.get("checkpoint_s", 0.0) + time.perf_counter() - t0
-                count["since_save"] = 0
-
+    books = _Books(_bar(progress, total, start), progress, viewer, checkpoints, total)
     try:
         with interrupt_requests() as stop:
             try:
@@ -263,30 +244,58 @@ def run_frames(frames: Iterable[Frame], step, *, total: int, start: int = 0, pro
                         break
                     if isinstance(frame, Frame):
                         frame = dataclasses.replace(frame, wait_s=time.perf_counter() - t0)
-                    if bar is not None and last is None and progress.first:
-                        bar.set_description_str(f"{progress.desc} ({progress.first})")
-                    last = frame
-                    finished(steps.submit(frame))
+                    books.finished(steps.submit(books.submitted(frame)))
                     stop.check()  # Ctrl-C or SIGTERM during the frame: stop here, between frames
-                finished(steps.drain())
+                books.finished(steps.drain())
             except KeyboardInterrupt as e:
-                _close(frames, bar)  # no frame is read while the checkpoint is written
+                _close(frames, books.bar)  # no frame is read while the checkpoint is written
                 if not stop.forced:  # the frames submitted go in before the checkpoint
-                    count["done"] += len(steps.drain())
-                _interrupted(e, stop.forced, checkpoints, start + count["done"])
+                    books.done += len(steps.drain())
+                _interrupted(e, stop.forced, checkpoints, start + books.done)
                 raise
     except BaseException:
         if viewer is not None:
             viewer.close()
         raise
     finally:
-        _close(frames, bar)
+        _close(frames, books.bar)
     final_save_s = 0.0
     if checkpoints is not None:
         t0 = time.perf_counter()
         checkpoints.final() if checkpoints.final is not None else checkpoints.save(False)
         final_save_s = time.perf_counter() - t0
-    return LoopResult(count["done"], time.perf_counter() - t_start, final_save_s)
+    return LoopResult(books.done, time.perf_counter() - t_start, final_save_s)
+
+
+class _Books:
+    """What `run_frames` keeps between frames: the bar, the viewer, the checkpoints every N frames."""
+
+    def __init__(self, bar, progress: Progress, viewer, checkpoints: Checkpoints | None, total: int):
+        self.bar, self.progress, self.viewer, self.checkpoints, self.total = bar, progress, viewer, checkpoints, total
+        self.done, self.since_save, self.last = 0, 0, None  # frames finished, since a save; submitted last
+
+    def submitted(self, frame: Frame) -> Frame:
+        if self.bar is not None and self.last is None and self.progress.first:
+            self.bar.set_description_str(f"{self.progress.desc} ({self.progress.first})")
+        self.last = frame
+        return frame
+
+    def finished(self, items: list[Finished]) -> None:
+        ck, viewer = self.checkpoints, self.viewer
+        for frame, record, pose in items:
+            _show(self.bar, self.progress, record, first=self.done == 0)
+            self.done += 1
+            self.since_save += 1
+            if viewer is not None and pose is not None:
+                viewer.on_frame(frame.index, to_world(frame.points, pose, viewer.viewer.max_points), pose, record)
+            # Written while the next frames map; if the last one is still being written (a GPU maps
+            # 10 frames faster than a map is written), the next frame tries again.
+            if (ck is not None and ck.every > 0 and self.since_save >= ck.every
+                    and self.last.position + 1 < self.total and not ck.busy()):
+                t0 = time.perf_counter()
+                ck.save(True)
+                record["checkpoint_s"] = record.get("checkpoint_s", 0.0) + time.perf_counter() - t0
+                self.since_save = 0
 
 
 def _show(bar, progress: Progress, record: dict, first: bool) -> None:
