@@ -46,9 +46,14 @@ def _synth_args(sub) -> None:
                    help="city: the street grid (default) or a curved ring boulevard with detached houses")
     p.add_argument("--beams", type=int, default=None, help="city: LiDAR beams (default per preset: 64, small 32)")
     p.add_argument("--traffic", type=int, default=0, metavar="N",
-                   help="city: N moving objects in the scans, never in the GT (~2/3 cars driving the lanes at 5-12 m/s "
-                        "ahead / oncoming / overtaking, the rest pedestrians on the sidewalks and crossings); "
-                        "per-frame boxes in moving_objects.json; grid and suburb layouts, not --long")
+                   help="city: N moving objects in the scans, never in the GT (~2/3 cars: ahead of the sensor in its "
+                        "lane, oncoming, overtaking it at up to 17 m/s, moving like cars; the rest pedestrians crossing "
+                        "the drive's street, on the sidewalks and side-street crossings); per-frame boxes in "
+                        "moving_objects.json; grid and suburb layouts, not --long")
+    p.add_argument("--parking", action="store_true",
+                   help="city: two more cars by a curb of the drive's street: one parked at the start that drives off "
+                        "mid-sequence (never in the GT) and one that parks mid-sequence and stays (in the GT at its "
+                        "place, class parked_car: the GT is the static world at the end); alone or with --traffic")
     p.add_argument("--realistic", nargs="?", const="all", default=None, metavar="LIST",
                    help="city: real spinning-LiDAR artifacts, all (no LIST) or a comma list of: mixed (mixed pixels: "
                         "at a > 0.3 m azimuth range jump, p = 0.5, a range uniform between foreground and background), "

@@ -38,6 +38,8 @@ def synth(args) -> int:
             kw["beams"] = args.beams
         if args.traffic:
             kw["traffic"] = args.traffic
+        if args.parking:
+            kw["parking"] = True
         if args.realistic is not None:
             kw["realistic"] = args.realistic
         if args.lane_shift or args.start:
@@ -45,19 +47,24 @@ def synth(args) -> int:
                 raise SystemExit("jaxmap synth: --lane-shift and --start are for the grid loop (not --long, "
                                  "not --layout suburb)")
             kw.update(lane_shift_m=args.lane_shift, start_m=args.start)
-    elif (args.layout != "grid" or args.beams is not None or args.traffic or args.realistic is not None
-          or args.lane_shift or args.start):
-        raise SystemExit("jaxmap synth: --layout, --beams, --traffic, --realistic, --lane-shift and --start are "
-                         "for the city scene")
+    elif (args.layout != "grid" or args.beams is not None or args.traffic or args.parking
+          or args.realistic is not None or args.lane_shift or args.start):
+        raise SystemExit("jaxmap synth: --layout, --beams, --traffic, --parking, --realistic, --lane-shift and "
+                         "--start are for the city scene")
     output_dir(args.out)
-    stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
+    try:
+        stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
+    except ValueError as e:  # (options that do not combine, a drive with no room for the parking cars)
+        raise SystemExit(f"jaxmap synth: {e}") from None
     print(json.dumps(stats))
     return 0
 
 
 def eval(args) -> int:  # noqa: A001 - the command's name
-    """`jaxmap eval MESH GT_DIR`: the standard protocol's metrics of a mesh."""
+    """`jaxmap eval MESH GT_DIR`: the standard protocol's metrics of a mesh (with the SA / DA of the points
+    the run trained on, when the mesh's run directory has them for this data)."""
     from jaxmap.metrics import evaluate_mesh_file, format_metrics
+    from jaxmap.metrics.dynamic import scores_of_run
 
     if args.json_out:
         output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
@@ -65,6 +72,9 @@ def eval(args) -> int:  # noqa: A001 - the command's name
                            cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
                            n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor,
                            ghost=not args.no_ghost)
+    scores = scores_of_run(args.mesh, args.gt)
+    if scores:
+        m["dynamic_points"] = scores
     print(format_metrics(m, "mesh"))
     if args.json_out:
         with open(args.json_out, "w") as f:

@@ -20,15 +20,21 @@ log = logging.getLogger("jaxmap")
 
 
 def finish_run(mapper: Mapper, cfg, out_dir: str, loop: LoopResult | None = None, *, evaluate: bool = True,
-               mesh: bool = True, extra: dict | None = None, viewer=None,
+               mesh: bool = True, extra: dict | None = None, viewer=None, point_scores: dict | None = None,
                wait_saves: Callable[[], None] | None = None) -> dict:
     """Mesh (`out_dir/mesh.ply`), metrics against the sequence's ground truth (`metrics.json`, when it
     has gt_points.ply) and timings (`timing.json`) of a mapped run; returns the run's summary.
-    mesh=False: timings only. The viewer, if any, shows the final mesh and is closed. wait_saves: waits
-    for the final checkpoint, written in the background while the map is meshed (`Checkpoints.final`);
-    what is left of it once the mesh is done counts in the run's wall_s and final_save_s."""
+    mesh=False: timings only. The viewer, if any, shows the final mesh and is closed. point_scores: the
+    run's `jaxmap.metrics.dynamic.PointScores.result()` (sequences with moving objects), written to
+    metrics.json and the summary as "dynamic_points". wait_saves: waits for the final checkpoint, written
+    in the background while the map is meshed (`Checkpoints.final`); what is left of it once the mesh is
+    done counts in the run's wall_s and final_save_s."""
     out = (mesh_and_metrics(mapper, cfg, out_dir, evaluate=evaluate) if mesh
            else {"mesh": None, "faces": 0, "mesh_s": 0.0})
+    if point_scores is not None:
+        out["dynamic_points"] = point_scores
+        if "metrics" in out:
+            out["metrics"]["dynamic_points"] = point_scores
     t0 = time.perf_counter()
     if wait_saves is not None:
         wait_saves()

@@ -67,15 +67,19 @@ class Frame:
     position: 0-based position in the run's frame selection; index: the sequence's own frame number;
     points: [N, 3] float32 sensor frame (preprocessed when `normals` is set); pose: [4, 4] float64
     T_world_sensor (the sequence's, or None where the step estimates it); normals: [N, 3] sensor frame;
-    batch: the scan as a frame program takes it, padded and on the device, where the loader made it
-    (N3's `scan.Uploader`); prepare_s: seconds the loader took (off the main thread); wait_s: seconds
-    the loop waited for the frame (`run_frames` sets it)."""
+    image: [H, W] float32 the whole scan's range image (`jaxmap.range_image`; N3's free-space evidence);
+    dynamic: [N] bool, the points inside the frame's moving-object boxes (`jaxmap.metrics.dynamic`; None
+    where the sequence has none); batch: the scan as a frame program takes it, padded and on the device,
+    where the loader made it (N3's `scan.Uploader`); prepare_s: seconds the loader took (off the main
+    thread); wait_s: seconds the loop waited for the frame (`run_frames` sets it)."""
 
     position: int
     index: int
     points: np.ndarray
     pose: np.ndarray | None
     normals: np.ndarray | None = None
+    image: np.ndarray | None = None
+    dynamic: np.ndarray | None = None
     batch: Any = None
     prepare_s: float = 0.0
     wait_s: float = 0.0

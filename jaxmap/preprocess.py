@@ -1,15 +1,18 @@
-"""Scan preprocessing: range/height crop, voxel downsample, optional outlier removal, PCA normals
-oriented to the sensor.
+"""Scan preprocessing: mixed pixels and isolated returns dropped on the range image, range/height crop,
+voxel downsample, optional outlier removal, PCA normals oriented to the sensor.
 
 Pure numpy + scipy (no open3d), so the mapping core runs on machines that only have JAX.
 All functions take and return sensor-frame arrays; the mapper moves them to the map frame.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from jaxmap import range_image
 
 
 CUBE_KNN_CAP = 16      # cube_knn normals: candidates per cell of the cube (in input order)
@@ -205,11 +208,47 @@ def normals_of(points_s: np.ndarray, cfg) -> np.ndarray:
     return estimate_normals(points_s, cfg.normal_knn)[0]
 
 
+def layout_of(cfg, points_s: np.ndarray | None = None) -> range_image.Layout | None:
+    """The range-image layout a PreprocessConfig sets (`image_rows` > 0), else the one read off the raw scan
+    `points_s` [N, 3] (sensor frame), else None."""
+    if cfg.image_rows > 0:
+        return range_image.Layout(rows=cfg.image_rows, cols=cfg.image_cols, elev0=math.radians(cfg.image_elev0_deg),
+                                  elev_step=math.radians(cfg.image_elev_step_deg), az0=math.radians(cfg.image_az0_deg))
+    if points_s is None:
+        return None
+    return range_image.estimate_layout(points_s)
+
+
+def with_layout(cfg, points_s: np.ndarray):
+    """cfg (a PreprocessConfig) with its range-image layout fixed: read off the raw scan points_s [N, 3]
+    when `image_rows` is 0 (the first scan of a run; every later scan then uses the same image)."""
+    if cfg.image_rows > 0:
+        return cfg
+    lay = range_image.estimate_layout(points_s)
+    return dataclasses.replace(cfg, image_rows=lay.rows, image_cols=lay.cols,
+                               image_elev0_deg=math.degrees(lay.elev0), image_elev_step_deg=math.degrees(lay.elev_step),
+                               image_az0_deg=math.degrees(lay.az0))
+
+
+def drop_veil(points_s: np.ndarray, cfg) -> np.ndarray:
+    """The raw scan [N, 3] (sensor frame) without its mixed pixels and isolated returns
+    (`range_image.veil_keep` with tolerance `veil_m`; 0 = all kept). Runs before the crop: a return's
+    neighbours in the range image must all be there."""
+    if cfg.veil_m <= 0 or len(points_s) == 0:
+        return points_s
+    return points_s[range_image.veil_keep(points_s, layout_of(cfg, points_s), cfg.veil_m)]
+
+
 def preprocess_scan(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
-    """Crop, downsample and estimate normals. cfg: a PreprocessConfig.
+    """Drop mixed pixels, crop, downsample and estimate normals. cfg: a PreprocessConfig.
 
     points_s: [N,3] float32 sensor frame -> (points [M,3] float32, normals [M,3] float32), sensor frame.
     """
+    return preprocess_points(drop_veil(points_s, cfg), cfg)
+
+
+def preprocess_points(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:
+    """`preprocess_scan` after the veil filter: crop, downsample, outliers, normals."""
     pts = crop(points_s, cfg.min_range_m, cfg.max_range_m, cfg.min_z_m, cfg.max_z_m)
     pts = voxel_downsample(pts, cfg.vox_down_m)
     if cfg.outlier_mad > 0:

@@ -51,3 +51,30 @@ def hall_scan(sensor_xyz, *, box=None, beams: int = 32, steps: int = 512, half_w
             t = np.minimum(t, np.where((near <= far) & (near > 0), near, np.inf))
     ok = t < max_range
     return (d[ok] * t[ok, None]).astype(np.float32)
+
+
+def boxes_scan(sensor_xyz, boxes=(), *, beams: int = 32, steps: int = 512, half_width: float = 6.0,
+               end_x: float = 40.0, max_range: float = 60.0) -> np.ndarray:
+    """Points [N,3] float32 in the sensor frame (axes as the world's) of a sensor at `sensor_xyz` in a hall
+    like `hall_scan`'s (ground z=0, walls y=+-half_width, x=+-end_x) with any number of axis-aligned boxes
+    `(x0, x1, y0, y1, z0, z1)` (world frame) in it; returns beyond max_range are lost."""
+    o = np.asarray(sensor_xyz, np.float64)
+    az = np.linspace(-np.pi, np.pi, steps, endpoint=False) + np.pi / steps
+    el = np.deg2rad(np.linspace(-25, 10, beams))
+    A, E = np.meshgrid(az, el)
+    d = np.stack([np.cos(E) * np.cos(A), np.cos(E) * np.sin(A), np.sin(E)], -1).reshape(-1, 3)
+    t = np.full(len(d), np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.minimum(t, np.where(d[:, 2] < -1e-6, -o[2] / d[:, 2], np.inf))
+        for axis, half in ((1, half_width), (0, end_x)):
+            for side in (-1.0, 1.0):
+                tt = (side * half - o[axis]) / d[:, axis]
+                t = np.minimum(t, np.where(tt > 0, tt, np.inf))
+        for x0, x1, y0, y1, z0, z1 in boxes:
+            lo, hi = np.array([x0, y0, z0]), np.array([x1, y1, z1])
+            t1, t2 = (lo - o) / d, (hi - o) / d
+            near = np.nanmax(np.minimum(t1, t2), axis=1)
+            far = np.nanmin(np.maximum(t1, t2), axis=1)
+            t = np.minimum(t, np.where((near <= far) & (near > 0), near, np.inf))
+    ok = t < max_range
+    return (d[ok] * t[ok, None]).astype(np.float32)

@@ -52,6 +52,17 @@ def small_city(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def small_parking_city(tmp_path_factory):
+    """Directory (pathlib.Path) of `generate_city(small=True, seed=0, parking=True)`: the small city with
+    exactly the two parking cars (one drives off its place, one parks; moving_objects.json)."""
+    from jaxmap.synth.city import generate_city
+
+    out = tmp_path_factory.mktemp("small_parking_city")
+    generate_city(out, seed=0, small=True, parking=True)
+    return out
+
+
+@pytest.fixture(scope="session")
 def small_room(tmp_path_factory):
     """Directory (pathlib.Path) of `generate_room(small=True, seed=0)`: depth layout, 10 frames of
     160 x 120 uint16-mm depth on a closed loop, intrinsics.txt, gt_mesh.ply, gt_points.ply, meta.json."""

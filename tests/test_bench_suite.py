@@ -26,3 +26,17 @@ def test_rows_are_recorded_city_by_city_and_twins_compare(tmp_path, capsys):
     assert "grid_s1_traffic / grid_s1: C-L1 3.10 / 3.00 cm (x1.033), far 5.00 / 2.00 %" in out
     assert "ghost m2: car 20.0, total 20.0" in out and "mean (1 clean)" in out
     assert S.summarize({"grid_s1_traffic": v["rows"]["grid_s1_traffic"]}, S.CLEAN) == {"mean": {}, "worst": {}}
+
+
+def test_a_traffic_city_from_an_older_generator_is_made_again(tmp_path):
+    """The suite's traffic city asks for the parking cars: a directory whose meta.json says its traffic
+    has no roles (before issue 30) or no parking cars is synthesized again, one that has them is kept."""
+    kw = S.SUITE["grid_s1_traffic"]
+    assert kw.get("parking")
+    d = tmp_path / "c"
+    d.mkdir()
+    for traffic, older in (({"cars": 5, "pedestrians": 3}, True), ({"cars": 5, "roles": {}}, True),
+                           ({"cars": 7, "roles": {}, "parking": {}}, False)):
+        (d / "meta.json").write_text(json.dumps({"traffic": traffic}))
+        assert S._older_traffic(str(d), kw) == older, traffic
+    assert not S._older_traffic(str(d), S.SUITE["grid_s1"])

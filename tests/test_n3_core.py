@@ -44,7 +44,7 @@ def test_pure_integrate_and_train_give_the_facades_state():
     train = jax.jit(functools.partial(core.train, static))
     bucket = 0
     for i, (pts, pose) in enumerate(frames):
-        p, n, pose = scan.preprocess(pts, pose, cfg.preprocess, i)
+        p, n, pose = scan.preprocess(pts, pose, cfg.preprocess, i)[:3]
         if i == 0:
             state = core.set_origin(static, state, pose[:3, 3])
         bucket = scan.bucket_for(len(p), bucket)
@@ -225,7 +225,7 @@ def test_growth_from_tiny_capacities_loses_nothing():
     piped.place_origin(frames[0][1])
     upload = scan.Uploader(piped.origin, raw=False)
     for i, (pts, pose) in enumerate(frames):
-        p, nrm, pose = scan.preprocess(pts, pose, cfg.preprocess, i)
+        p, nrm, pose = scan.preprocess(pts, pose, cfg.preprocess, i)[:3]
         piped.submit(upload(Frame(i, i, p, pose, nrm)).batch)
     piped.finish()
     assert [r["passes"] for r in piped.timings] == [r["passes"] for r in small.timings]

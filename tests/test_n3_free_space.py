@@ -155,7 +155,7 @@ def test_free_samples_outside_allocated_voxels_are_dropped_and_counted(extra):
     cfg = load_config("configs/city.yaml", SMALL + list(extra))
     static = core.N3Static.from_config(cfg)
     state = core.init_state(static, cfg, core.capacities_for(static, cfg))
-    pts, nrm, pose = scan.preprocess(corridor_scan(0.0, max_range=10.0), pose_at(0.0), cfg.preprocess, 0)
+    pts, nrm, pose = scan.preprocess(corridor_scan(0.0, max_range=10.0), pose_at(0.0), cfg.preprocess, 0)[:3]
     state = core.set_origin(static, state, pose[:3, 3])
     batch = scan.to_batch(pts, nrm, pose, core.origin_world(static, state), scan.bucket_for(len(pts)))
     key = jax.random.PRNGKey(3)
@@ -191,7 +191,7 @@ def test_points_where_the_map_is_confidently_free_get_no_samples():
             # a static scene keeps its points: all but a few on the ground next to the walls (a concave
             # corner, where the field is learned ~0.1 m too high: measured 0.2-0.5 % of the points)
             assert info["points_filtered"] <= 0.01 * info["points"], info
-    pts, _, _ = scan.preprocess(hall_scan((x, 0, 1.7), box=BOX), pose_at(x), m.cfg.preprocess, 26)
+    pts, _, _ = scan.preprocess(hall_scan((x, 0, 1.7), box=BOX), pose_at(x), m.cfg.preprocess, 26)[:3]
     w = pts + [x, 0.0, 1.7]
     on_box = int(np.sum(np.all((w > [3.95, -1.05, -0.05]) & (w < [6.05, 1.05, 1.55]), axis=1)))
     assert on_box > 100 and 0.5 * on_box <= info["points_filtered"] <= on_box + 0.01 * info["points"], \

@@ -486,25 +486,27 @@ def test_city_traffic(tmp_path):
     scans = [transform_points(f.pose, f.points.astype(np.float64)) for f in seq]
     hits = np.zeros(nf, int)
     for o in mo["objects"]:
-        P = np.array(o["poses"], dtype=np.float64)
-        assert P.shape == (nf, 4) and np.all(np.abs(P[:, 3]) <= np.pi + 1e-4)
-        step = np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1) / spacing
+        P = np.array([[np.nan] * 4 if p is None else p for p in o["poses"]], dtype=np.float64)
+        assert P.shape == (nf, 4) and np.all(np.abs(P[:, 3]) <= np.pi + 1e-4, where=np.isfinite(P[:, 3]))
+        step = np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1) / spacing  # (m/s / 10 m/s; nan: absent)
         l, w, h = o["size_xyz_m"]
-        if o["kind"] == "car":
-            assert 3.9 < l < 4.5 and 1.65 < w < 1.85 and 1.35 < h < 1.65 and np.all(P[:, 2] == 0)
-            assert step.min() > 0.5 and step.max() < 1.2, (step.min(), step.max())
+        if o["kind"] == "car":  # (how cars move: tests/test_traffic.py)
+            assert 3.9 < l < 4.5 and 1.65 < w < 1.85 and 1.35 < h < 1.65 and np.nanmax(np.abs(P[:, 2])) == 0
+            assert np.nanmin(step) > 0.5 and np.nanmax(step) < 1.75, (np.nanmin(step), np.nanmax(step))
             # never on the sensor; in its line of travel (laterally within w/2) always >= 8 m away
             rel = sensor[:, :2] - P[:, :2]
             fwd = rel[:, 0] * np.cos(P[:, 3]) + rel[:, 1] * np.sin(P[:, 3])
             yaw_e = np.arctan2(seq.poses[:, 1, 0], seq.poses[:, 0, 0])
             lat_e = -rel[:, 0] * np.sin(yaw_e) + rel[:, 1] * np.cos(yaw_e)
-            assert np.all((np.abs(fwd) > l / 2 + 0.1) | (np.abs(-rel[:, 0] * np.sin(P[:, 3]) + rel[:, 1]
-                                                              * np.cos(P[:, 3])) > w / 2 + 0.1))
-            assert np.all((np.abs(lat_e) > w / 2) | (np.linalg.norm(rel, axis=1) >= 8.0))
-        else:
+            assert not np.any((np.abs(fwd) <= l / 2 + 0.1) & (np.abs(-rel[:, 0] * np.sin(P[:, 3]) + rel[:, 1]
+                                                                  * np.cos(P[:, 3])) <= w / 2 + 0.1))
+            assert not np.any((np.abs(lat_e) <= w / 2) & (np.linalg.norm(rel, axis=1) < 8.0))
+        else:  # walking at 1.3-1.5 m/s, pausing at the crossings' ends
             assert o["kind"] == "pedestrian" and o["size_xyz_m"] == [0.5, 0.4, 1.75]
-            assert 0.12 < np.median(step) < 0.16 and step.max() < 0.16
+            assert 0.12 < np.median(step[step > 0]) < 0.16 and step.max() < 0.16
         for i in range(0, nf, 3):
+            if not np.isfinite(P[i, 0]):
+                continue
             # never in the GT (nor overlapping a parked car / building: their GT samples would lie inside)
             assert not _boxes_contain(P[i], (l, w, h), gt, grow=-0.01, z_margin=0.03).any(), (o["id"], i)
             hits[i] += _boxes_contain(P[i], (l, w, h), scans[i], grow=0.05).sum()

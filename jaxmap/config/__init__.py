@@ -5,7 +5,7 @@ from jaxmap.config.loading import (apply_overrides, config_from_args, from_dict,
                                    shipped_config_path, to_dict, unknown_key_message)
 from jaxmap.config.rules import (CHECKS, DATA_KINDS, RULES, Rule, above, at_least, lattice_problem, one_of,
                                  strictly_within, validate, within)
-from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
+from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, EvidenceConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
 from jaxmap.config.prior import (EncoderConfig, LatentDecoderConfig, PriorConfig, PriorDataConfig, PriorModelConfig,
@@ -16,7 +16,7 @@ from jaxmap.errors import ConfigError
 __all__ = ["apply_overrides", "config_from_args", "from_dict", "load_config", "save_config", "shipped_config_path",
            "to_dict", "unknown_key_message", "CHECKS", "DATA_KINDS", "RULES", "Rule", "above", "at_least",
            "lattice_problem", "one_of", "strictly_within", "validate", "within", "DataConfig",
-           "DecoderConfig", "EvalConfig", "GridConfig", "ImtConfig", "LatentMapConfig", "LatentMeshConfig",
+           "DecoderConfig", "EvalConfig", "EvidenceConfig", "GridConfig", "ImtConfig", "LatentMapConfig", "LatentMeshConfig",
            "MapConfig", "MeshConfig", "PreprocessConfig", "SamplingConfig", "TrainConfig", "WindowConfig",
            "FrontEndConfig", "LoopConfig", "OdometryConfig", "SlamConfig", "EncoderConfig", "LatentDecoderConfig", "PriorConfig", "PriorDataConfig",
            "PriorModelConfig", "PriorTrainConfig", "ConfigError"]

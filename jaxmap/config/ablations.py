@@ -3,6 +3,12 @@
 
 VARIANTS = {
     "jaxmap": [],
+    # free space before issue 30: no persistent evidence, no veil filter (ray samples and carving only)
+    "evidence_off": ["evidence.enabled=false", "preprocess.veil_m=0"],
+    "veil_off": ["preprocess.veil_m=0"],                # evidence, but mixed pixels and outliers kept
+    "no_raise": ["evidence.raise_pairs=false"],         # void voxels masked, their pairs left as they were
+    # the evidence alone: no free samples along the ray, nothing carved (issue 21's mechanism off)
+    "no_rays": ["sampling.free_ray_n=0", "window.carve=false"],
     # the free-space label and pair store before issue 14 (flat +tr free labels, newest-64 ring)
     "flat_ring": ["sampling.free_label_mode=truncation", "window.block_policy=ring", "window.pairs_per_frame=0"],
     # free space before issue 21: samples only in the last metre before the band, nothing carved

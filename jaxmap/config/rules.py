@@ -11,7 +11,7 @@ from dataclasses import dataclass
 from typing import Any, Callable
 
 from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
-                                  LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
+                                  LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, EvidenceConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
 from jaxmap.config.prior import EncoderConfig
 from jaxmap.config.slam import (EDGE_INFORMATION, MAP_KINDS, N3_LOOP_MODES, ODOMETRY_METHODS, FrontEndConfig,
@@ -120,6 +120,10 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
             f"set {x}device=false or {x}outlier_mad=0")
     if p.normals != "knn":
         yield from _grid_checks(p, x)
+    if p.image_rows > 0 and not (p.image_cols > 0 and p.image_elev_step_deg > 0):
+        yield (f"{x}image_rows", f"{x}image_cols", f"{x}image_elev_step_deg"), (
+            f"{x}image_rows={p.image_rows} sets the range image by hand: set {x}image_cols and "
+            f"{x}image_elev_step_deg (> 0) and {x}image_elev0_deg too, or image_rows=0 to read them off the first scan")
 
 
 def _grid_checks(p: PreprocessConfig, x: str):
@@ -138,7 +142,9 @@ RULES: dict[type, dict[str, Rule]] = {
     PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3),
                        "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid", "cube_knn"),
                        "device": one_of("auto", "true", "false"),
-                       "normal_cell_m": above(0.0), "normal_levels": at_least(1)},
+                       "normal_cell_m": above(0.0), "normal_levels": at_least(1), "veil_m": at_least(0.0),
+                       "image_rows": at_least(0), "image_cols": at_least(0), "image_elev_step_deg": at_least(0.0)},
+    EvidenceConfig: {"margin_m": at_least(0.0), "void_frames": at_least(1)},
     SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),

@@ -39,6 +39,14 @@ class PreprocessConfig:
                                      # device on a GPU or TPU, the host on a CPU); there normals knn becomes cube_knn
     outlier_mad: float = 0.0         # > 0: drop points whose range-scaled mean neighbour distance is this many
                                      # robust std above the scan's median (mixed pixels, stray returns); 0 = off
+    veil_m: float = 0.15             # > 0: drop mixed pixels and isolated returns on the scan's range image (a
+                                     # return that continues no neighbour in its row or column within this); 0 = off
+    image_rows: int = 0              # the scan's range image (veil filter, free-space evidence): rows (beams);
+                                     # 0 = read off the first scan (its elevation clusters), then fixed for the run
+    image_cols: int = 0              # ... columns (azimuth steps a turn); 0 = read off the first scan
+    image_elev0_deg: float = 0.0     # ... elevation of row 0's lower edge (degrees; set with image_rows)
+    image_elev_step_deg: float = 0.0  # ... rows' height (degrees; set with image_rows)
+    image_az0_deg: float = -180.0    # ... azimuth where column 0 starts (degrees; set with image_rows)
 
 
 @dataclass(frozen=True)
@@ -112,6 +120,17 @@ class WindowConfig:
 
 
 @dataclass(frozen=True)
+class EvidenceConfig:
+    enabled: bool = True             # persistent free-space evidence per leaf voxel: voxels seen free (every
+                                     # return of their footprint in the range image lies beyond them) since their
+                                     # last hit are void: no training on points there, their pairs raised, no mesh
+    margin_m: float = 0.1            # a voxel is seen free when every return near its direction lies beyond its
+                                     # far side by this (pose and range error; DUFOMap's margin)
+    void_frames: int = 2             # frames seen free since the last hit that make a voxel void
+    raise_pairs: bool = True         # the pairs stored in a voxel that turns void are raised to >= margin_m
+
+
+@dataclass(frozen=True)
 class MeshConfig:
     resolution_m: float = 0.1        # marching-cubes lattice spacing, metres (must divide leaf_vox_size)
     min_component_faces: int = 50    # drop connected components smaller than this
@@ -138,6 +157,7 @@ class MapConfig:
     decoder: DecoderConfig = field(default_factory=DecoderConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
+    evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: str = "runs/map"         # run directory (`--out` overrides it)
@@ -154,7 +174,7 @@ def _room_data() -> DataConfig:
 
 
 def _room_preprocess() -> PreprocessConfig:
-    return PreprocessConfig(min_range_m=0.1, max_range_m=8.0, vox_down_m=0.025)
+    return PreprocessConfig(min_range_m=0.1, max_range_m=8.0, vox_down_m=0.025, veil_m=0.0)
 
 
 @dataclass(frozen=True)

@@ -452,7 +452,8 @@ def protocol_floor(gt_mesh, gt_points, max_edge_m: float = FLOOR_MAX_EDGE_M, **k
 def format_metrics(m: dict, name: str = "mesh") -> str:
     """A small table of a metrics dict of :func:`evaluate_mesh_file`: the floor row first (when
     present), then the mesh (the protocol's figures, then pred_far_share, precision_all and f_score_all),
-    the ghost area per kind (when the sequence has moving objects), then the signed error per class (cm,
+    the ghost area per kind (when the sequence has moving objects), the run's SA / DA of the points it
+    trained on ("dynamic_points", `jaxmap.metrics.dynamic`, when present), then the signed error per class (cm,
     mean / median / points). Older dicts without the extra keys print nan there."""
     head = f"{'':<8}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>8}{'F %':>8}" \
            f"{'far %':>8}{'P all %':>9}{'F all %':>9}   (protocol {m.get('protocol')}, " \
@@ -470,6 +471,10 @@ def format_metrics(m: dict, name: str = "mesh") -> str:
             parts = ", ".join(f"{k} {v:.2f}" for k, v in g.items())
             rows.append(f"ghost surface (m^2){'' if label == name else ', floor'}: {parts} (predicted surface "
                         "inside space only moving objects occupied, > 0.15 m from the static GT)")
+    if m.get("dynamic_points"):
+        from jaxmap.metrics.dynamic import format_scores
+
+        rows.append(format_scores(m["dynamic_points"]))
     se = m.get("signed_error_cm")
     if se:
         rows.append("signed error per class (cm, + = outside / above the GT surface): " + ", ".join(

@@ -83,6 +83,9 @@ def _compact_fns(state: n3state.N3State, copy: bool) -> dict:
         "frame": value(state.frame),
         "hyper": {"lr": value(state.hyper.lr), "beta": value(state.hyper.beta), "weight_e": value(state.hyper.weight_e)},
     }
+    if state.evidence is not None:  # free-space evidence, per voxel row
+        tree["evidence"] = {"free_run": later(rows, state.evidence.free_run, nv),
+                            "raised": later(rows, state.evidence.raised, nv)}
     if state.pool is not None:  # the replay / keyframe ablations: the pool's pairs in use
         npool = int(state.pool.n)
         tree["pool"] = {k: later(rows, getattr(state.pool, k), npool) for k in ("pairs", "surface", "frame", "voxel_row")}
@@ -137,10 +140,20 @@ def expand(static: n3state.N3Static, cfg: MapConfig, caps: n3state.Capacities, c
                                                moments=put(state.feature_opt.moments, c["feature_moments"], nr)),
         decoder=as_j(c["decoder"]),
         decoder_opt=optax.ScaleByAdamState(count=jnp.asarray(d["count"]), mu=as_j(d["mu"]), nu=as_j(d["nu"])),
-        store=store, pool=_expand_pool(state.pool, c), origin_vox=jnp.asarray(c["origin_vox"]),
+        store=store, pool=_expand_pool(state.pool, c), evidence=_expand_evidence(state.evidence, c, nv),
+        origin_vox=jnp.asarray(c["origin_vox"]),
         key=jnp.asarray(c["key"]),
         frame=jnp.asarray(c["frame"]), hyper=n3state.Hyper(**as_j(c["hyper"])),
     )
+
+
+def _expand_evidence(empty, c: dict, nv: int):
+    """The free-space evidence back (None when off; a checkpoint from before it: none seen yet)."""
+    if empty is None or "evidence" not in c or nv == 0:
+        return empty
+    e = c["evidence"]
+    return empty.replace(free_run=empty.free_run.at[:nv].set(jnp.asarray(e["free_run"][:nv])),
+                         raised=empty.raised.at[:nv].set(jnp.asarray(e["raised"][:nv])))
 
 
 def _expand_pool(empty, c: dict):

@@ -31,6 +31,7 @@ import numpy as np
 from jaxmap import compile_cache, hostmem
 from jaxmap.grid import hashing
 from jaxmap.grid.features import init_feature_rows
+from jaxmap.n3 import evidence as n3evidence
 from jaxmap.n3 import pool, window
 from jaxmap.n3.integrate import FrameStats, integrate
 from jaxmap.n3.scan_batch import RawScan, ScanBatch, prepare_scan
@@ -128,6 +129,7 @@ def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, fea
             voxel_coord=_pad_rows(state.voxel_coord, v_rows, 0),
             voxel_corner_rows=_pad_rows(state.voxel_corner_rows, v_rows, -1),
             store=window.grow(state.store, n_voxel_rows=v_rows),
+            evidence=n3evidence.grow(state.evidence, v_rows) if state.evidence is not None else None,
         )
     if r_rows != caps.feature_rows:
         log.info("growing the feature table %d -> %d rows (%d in use)", caps.feature_rows, r_rows, rows)

@@ -15,8 +15,10 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+from jaxmap import range_image
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
+from jaxmap.n3 import evidence as n3evidence
 from jaxmap.n3 import pool, window
 from jaxmap.n3.query import query
 from jaxmap.n3.sampling import sample_frame
@@ -45,6 +47,11 @@ class FrameStats(NamedTuple):
     points_filtered: jax.Array  # [] int32 scan points dropped where the map was confidently free
     scan_points: jax.Array      # [] int32 points of the preprocessed scan
     scan_overflow: jax.Array    # [] bool: the preprocessed scan has more points than its rows (grow, retry)
+    points_void: jax.Array      # [] int32 scan points dropped as lying in void voxels (free-space evidence)
+    voxels_free: jax.Array      # [] int32 voxels this frame saw free
+    voxels_void: jax.Array      # [] int32 void voxels after the frame
+    voxels_raised: jax.Array    # [] int32 voxels whose stored pairs were raised this frame (they turned void)
+    kept: jax.Array             # [N] bool the scan points that got training samples
 
 
 def filter_moved_points(static: N3Static, state: N3State, scan: ScanBatch) -> tuple[ScanBatch, jax.Array]:
@@ -63,6 +70,35 @@ def filter_moved_points(static: N3Static, state: N3State, scan: ScanBatch) -> tu
     mature = state.frame >= static.freeze_after_frame
     drop = scan.valid & q_ok & trained & (sdf > static.point_filter) & mature
     return scan._replace(valid=scan.valid & ~drop), jnp.sum(drop, dtype=jnp.int32)
+
+
+def drop_void_points(static: N3Static, state: N3State, scan: ScanBatch):
+    """Scan points that land in void voxels (`jaxmap.n3.evidence`: seen free since their last hit) get no
+    samples: they are on something that moves, or a sensor artifact. Returns (scan with those points
+    invalid, [N] int32 voxel row of every scan point (-1: none yet), [] int32 points dropped)."""
+    pv = gfeat.leaf_voxel(scan.points, static.leaf)
+    rows = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
+    rows = jnp.where(scan.valid, rows, -1)
+    is_void = n3evidence.void(state.evidence, static.void_frames)
+    drop = (rows >= 0) & is_void[jnp.maximum(rows, 0)]
+    return scan._replace(valid=scan.valid & ~drop), rows, jnp.sum(drop, dtype=jnp.int32)
+
+
+def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, voxel_coord, n_voxels, ok):
+    """This frame's free-space evidence (`jaxmap.n3.evidence`): the voxels its range image saw free count
+    one more frame, the voxels its points hit (point_rows [N], those dropped as void too) start again;
+    the pairs of voxels that turned void are raised. Nothing changes when ok [] is False (the pass is
+    retried). Returns (evidence, store, [] int32 voxels seen free, [] int32 voxels raised)."""
+    v = ev.free_run.shape[0]
+    hit = jnp.zeros((v,), bool).at[jnp.where(point_rows >= 0, point_rows, v)].set(True, mode="drop")
+    levels = range_image.min_pool_levels(scan.image, static.image, jnp)
+    free = n3evidence.seen_free(voxel_coord, n_voxels, static.leaf, levels, static.image, scan.rotation,
+                                scan.sensor, static.evidence_margin, static.free_min_range)
+    ev = n3evidence.observe(ev, free, hit, ok)
+    n_raised = jnp.zeros((), jnp.int32)
+    if static.raise_pairs and not static.uses_pool:
+        ev, store, n_raised = n3evidence.raise_void_pairs(ev, store, static.void_frames, static.evidence_margin, ok)
+    return ev, store, jnp.sum(free & ~hit, dtype=jnp.int32), n_raised
 
 
 def allocate_voxels(static: N3Static, state: N3State, vkeys, valid, vox):
@@ -182,6 +218,9 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     n_filtered = jnp.zeros((), jnp.int32)
     if static.point_filter > 0:
         scan, n_filtered = filter_moved_points(static, state, scan)
+    point_rows = n_void = None
+    if static.evidence:
+        scan, point_rows, n_void = drop_void_points(static, state, scan)
     samples = sample_frame(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
                            trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=static.n_free,
                            free_band=static.free_band, free_label=static.free_label,
@@ -201,14 +240,23 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
     store, new_pool, ok, needed, free_blocks, pairs, carved = store_pairs(
         static, state, rows, vox, samples, allowed, center, key, free)
+    zero = jnp.zeros((), jnp.int32)
+    ev, n_free, n_raised = state.evidence, zero, zero
+    if static.evidence:
+        ev, store, n_free, n_raised = update_evidence(static, state.evidence, store, scan, point_rows, voxel_coord,
+                                                      voxels.count, ok)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
-                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool)
+                          voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool,
+                          evidence=ev)
+    n_void_voxels = (jnp.sum(n3evidence.void(ev, static.void_frames), dtype=jnp.int32) if static.evidence
+                     else zero)
     stats = FrameStats(
         ok=ok, voxel_overflow=v_over, corner_overflow=c_over, store_overflow=allowed & ~ok,
         pending_corners=pending, voxels=voxels.count, feature_rows=corners.count, new_voxels=n_new_v,
         new_feature_rows=n_new_c, blocks_needed=needed, blocks_free=free_blocks, window_blocks=store.window_n,
         store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
         carved=carved, points_filtered=n_filtered, scan_points=jnp.sum(scan.valid, dtype=jnp.int32),
-        scan_overflow=~fits,
+        scan_overflow=~fits, points_void=zero if n_void is None else n_void, voxels_free=n_free,
+        voxels_void=n_void_voxels, voxels_raised=n_raised, kept=scan.valid,
     )
     return state, stats

@@ -40,6 +40,8 @@ class N3Mapper:
         heap (about a gigabyte on a CPU) and the map are not in memory at the same time, and the map
         frame is placed at its pose (`place_origin`)."""
         self.cfg = cfg or MapConfig()
+        if state is None and first_scan is not None:
+            self.cfg = scan.resolve_layout(self.cfg, first_scan[0])
         self.static = core.N3Static.from_config(self.cfg)
         self._bucket, self._headroom = 0, {}
         first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
@@ -88,8 +90,8 @@ class N3Mapper:
         if self.static.preprocess is not None:
             pts, pose = scan.check_frame(points_s, pose, 0)
             return scan.to_raw(pts, pose, pose[:3, 3], scan.bucket_for(len(pts)))
-        pts, nrm, pose = scan.preprocess(points_s, pose, self.cfg.preprocess, 0)
-        return scan.to_batch(pts, nrm, pose, pose[:3, 3], scan.bucket_for(len(pts)))
+        pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, 0, image=self.static.evidence)
+        return scan.to_batch(pts, nrm, pose, pose[:3, 3], scan.bucket_for(len(pts)), img)
 
     def _precompile(self, caps: core.Capacities, batch) -> None:
         """Compile the first frame's program from the shapes alone (`core.compiled_step` keeps it)."""
@@ -99,18 +101,39 @@ class N3Mapper:
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         core.compiled_step(self.static, abstract, batch, self._headroom.get("scan_rows", 0))
 
+    def fix_layout(self, points_s) -> None:
+        """Read the range-image layout off the first scan when the config leaves it open (an empty map is
+        made again with it: nothing was compiled or mapped yet)."""
+        if not scan.needs_layout(self.cfg):
+            return
+        self.cfg = scan.resolve_layout(self.cfg, points_s, self.frames)
+        self.static = core.N3Static.from_config(self.cfg)
+        self._pipe.static = self.static
+        caps = core.Capacities.of(self.state)
+        self.state = None
+        self.state = _init_state(self.static, self.cfg, caps)
+
     def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
         """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
-        `prepared` = (points, normals, pose) already preprocessed (see `scan.Prefetcher`).
-        Returns the frame's timings (s), loss and map/store sizes, once it is in."""
+        `prepared` = (points, normals, pose[, image]) already preprocessed (`scan.preprocess`, e.g. in the
+        frame loop's prefetch thread; the image, the whole scan's range image, feeds the free-space evidence).
+        Returns, once the frame is in, its timings (s), loss, map/store sizes and `kept` ([M] bool: the
+        prepared points that got training samples; None with `preprocess.device`)."""
         t0 = time.perf_counter()
         device = self.static.preprocess is not None
+        img = None
+        if prepared is None and self.frames == 0:
+            self.fix_layout(points_s)
         if prepared is not None:
-            pts, nrm, pose = prepared
+            pts, nrm, pose = prepared[:3]
+            img = prepared[3] if len(prepared) > 3 else None
         elif device:
             (pts, pose), nrm = scan.check_frame(points_s, pose, self.frames), None
         else:
-            pts, nrm, pose = scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames)
+            pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames,
+                                                  image=self.static.evidence)
+        if self.static.evidence and not device and img is None:
+            img = scan.empty_image(self.static.image)  # no image: this frame sees nothing free
         t1 = time.perf_counter()
         if self.frames == 0:
             self.place_origin(pose)
@@ -118,34 +141,37 @@ class N3Mapper:
         if device:
             batch = scan.to_raw(pts, pose, self._origin, self._bucket)
         else:
-            batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket)
-        self.submit(batch, prepare_s=t1 - t0, main_s=time.perf_counter() - t0)
+            batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket, img)
+        self.submit(batch, points=len(pts), prepare_s=t1 - t0, main_s=time.perf_counter() - t0)
         self._settle()
-        self._unreported.clear()
-        return self.timings[-1]
+        ((info, kept),) = self._take_unreported()
+        return {**info, "kept": kept}
 
-    def submit(self, batch, *, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0) -> list[dict]:
+    def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
+               main_s: float = 0.0) -> list[tuple[dict, np.ndarray | None]]:
         """Dispatch one frame's program and return without waiting for it: batch is its scan as the
         frame program takes it (`scan.Uploader`: padded, in the map frame of `place_origin`, on the
-        device). Returns the records of the frames finished meanwhile (the one before it, usually),
-        oldest first. prepare_s / wait_s: seconds its preparation took / the loop waited for it;
-        main_s: seconds of the main thread's before the dispatch (in its record's total_s)."""
+        device), of `points` prepared points. Returns (record, kept) of the frames finished meanwhile (the
+        one before it, usually), oldest first: the record is the one kept in `timings`, kept ([M] bool,
+        None with `preprocess.device`) the prepared points that got training samples. prepare_s / wait_s:
+        seconds its preparation took / the loop waited for it; main_s: seconds of the main thread's before
+        the dispatch (in its record's total_s)."""
         if self.static.preprocess is not None and "scan_rows" not in self._headroom:
             # the first frame: size the preprocessed rows by what it keeps
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         self._bucket = batch.points.shape[0]
         self._pipe.submit(batch, {"frame": self.frames, "preprocess_s": prepare_s, "wait_s": wait_s,
-                                  "main_s": main_s, "bucket": self._bucket})
+                                  "main_s": main_s, "bucket": self._bucket, "n": points})
         self.frames += 1
         self._collect()
         return self._take_unreported()
 
-    def finish(self) -> list[dict]:
-        """Wait for every frame submitted; the records not returned yet, oldest first."""
+    def finish(self) -> list[tuple[dict, np.ndarray | None]]:
+        """Wait for every frame submitted; (record, kept) of those not returned yet, oldest first."""
         self._settle()
         return self._take_unreported()
 
-    def _take_unreported(self) -> list[dict]:
+    def _take_unreported(self) -> list[tuple[dict, np.ndarray | None]]:
         out, self._unreported = self._unreported, []
         return out
 
@@ -156,6 +182,7 @@ class N3Mapper:
     def _collect(self) -> None:
         """The records of the frames whose stats came back."""
         st = self._pipe.state  # (its shapes only)
+        device = self.static.preprocess is not None
         for d in self._pipe.done():
             fs, ts, tag = d.stats, d.train, d.tag
             info = {"frame": tag["frame"], "points": int(fs.scan_points), "bucket": tag["bucket"],
@@ -169,11 +196,14 @@ class N3Mapper:
                     "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
                     "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
                     "free_dropped": int(fs.free_dropped), "carved": int(fs.carved),
-                    "points_filtered": int(fs.points_filtered),
+                    "points_filtered": int(fs.points_filtered), "points_void": int(fs.points_void),
+                    "voxels_free": int(fs.voxels_free), "voxels_void": int(fs.voxels_void),
+                    "voxels_raised": int(fs.voxels_raised),
                     "feature_capacity": int(st.feature_table.shape[0]),
                     "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
             self.timings.append(info)
-            self._unreported.append(info)
+            # (the mask is not in the timings: a per-point mask per frame would bloat timing.json and the checkpoints)
+            self._unreported.append((info, None if device else np.asarray(fs.kept)[:tag["n"]]))
 
     def reset(self) -> None:
         """Forget the map: an empty state of the current capacities (so the compiled frame program is

@@ -11,7 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.config import ConfigError
-from jaxmap.grid.features import query_features
+from jaxmap.grid import hashing
+from jaxmap.grid.features import leaf_voxel, query_features
+from jaxmap.n3 import evidence as n3evidence
 from jaxmap.mesh import extract_mesh
 from jaxmap.n3.decoder import decode
 from jaxmap.n3.loss import sdf_and_grad
@@ -26,12 +28,17 @@ def query(static: N3Static, state: N3State, points_m):
     A point is valid where the 8 corners of its level-`mask_level` voxel have features (0 = only
     inside allocated leaf voxels; 1 = inside their 2x parents, which closes the gaps between LiDAR
     rings on grazing ground, as SHINE/N3 mesh at `mc_vis_level` 1), and at least `min_leaf_corners`
-    of the 8 corners of its leaf voxel have features. Corners without features count as zero.
+    of the 8 corners of its leaf voxel have features, and its leaf voxel is not void (free-space evidence:
+    seen free since its last hit, `jaxmap.n3.evidence`). Corners without features count as zero.
     """
     f, rows = query_features(state.corners, state.feature_table, points_m, static.leaf, static.levels)
     ml = static.mask_level
     valid = jnp.all(rows[:, ml * 8:(ml + 1) * 8] >= 0, axis=1)                     # rows: [N, L*8]
     valid &= jnp.sum(rows[:, :8] >= 0, axis=1) >= static.min_leaf_corners
+    if static.evidence:
+        pv = leaf_voxel(points_m, static.leaf)
+        vrow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
+        valid &= ~((vrow >= 0) & n3evidence.void(state.evidence, static.void_frames)[jnp.maximum(vrow, 0)])
     return jax.vmap(decode, in_axes=(None, 0))(state.decoder, f), valid
 
 

@@ -7,7 +7,9 @@ A run directory holds:
                   every `checkpoint_every` frames, at the end, and on Ctrl-C or SIGTERM), what
                   `--resume` and `jaxmap mesh` read (the newest intact one)
   mesh.ply        the marching-cubes mesh at mesh.resolution_m (world frame)
-  metrics.json    reconstruction metrics, when the sequence has ground truth (gt_points.ply)
+  metrics.json    reconstruction metrics, when the sequence has ground truth (gt_points.ply); with moving
+                  objects (moving_objects.json) also "dynamic_points": SA / DA of the points trained on
+                  (`jaxmap.metrics.dynamic`; after a --resume, of the frames mapped since)
   timing.json     per-frame timings (preprocess / sampling / training) and store sizes, plus medians
 """
 from __future__ import annotations
@@ -27,6 +29,7 @@ from jaxmap.errors import CheckpointError, NoCheckpointError
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.hostmem import peak_rss_mb
+from jaxmap.metrics import dynamic
 from jaxmap.n3 import checkpoint, scan
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.n3.mapper import N3Mapper, origin_at
@@ -55,19 +58,25 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     t_start = time.perf_counter()
     n_compiles = len(COMPILE_SECONDS)
     seq = open_run_sequence(cfg)
-    load = functools.partial(prepare_frame, cfg.preprocess)
+    labeller = dynamic.labeller_for(cfg.data.path)
+    scores = dynamic.PointScores() if labeller is not None else None
     if resume:
         mapper = resume_mapper(out_dir, cfg)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
         if mapper.frames == 0 and len(seq):
+            mapper.fix_layout(seq.frame(0).points)
             mapper.place_origin(seq.frame(0).pose)
-        frames = Prefetcher(seq, mapper.frames, len(seq), load,
+        cfg = mapper.cfg
+        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(cfg, labeller),
                             then=scan.Uploader(mapper.origin, device, mapper.bucket))
     else:
         # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
         # is the first pose's, and the first prepared frame gives the program its shapes.
-        origin = origin_at(cfg, seq.frame(0).pose) if len(seq) else np.zeros(3)
-        frames = Prefetcher(seq, 0, len(seq), load, then=scan.Uploader(origin, device))
+        first = seq.frame(0) if len(seq) else None
+        if first is not None:
+            cfg = scan.resolve_layout(cfg, first.points)  # the range-image layout read off the first scan
+        origin = origin_at(cfg, first.pose) if first is not None else np.zeros(3)
+        frames = Prefetcher(seq, 0, len(seq), _loader(cfg, labeller), then=scan.Uploader(origin, device))
         try:
             mapper = N3Mapper(cfg, first_frame=frames.first())
         except BaseException:
@@ -82,25 +91,38 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                         final=lambda: mapper.save(ckpt, background=True, copy=False))
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    loop = run_frames(frames, MapSteps(mapper), total=len(seq), start=start, progress=bar, viewer=viewer,
+    loop = run_frames(frames, MapSteps(mapper, scores), total=len(seq), start=start, progress=bar, viewer=viewer,
                       checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
+                      point_scores=scores.result() if scores is not None else None,
                       wait_saves=checkpoint.wait_for_saves)
 
 
-def prepare_frame(cfg_preprocess, seq, i: int, poses=None) -> Frame:
-    """`Prefetcher` loader of frame i: read, checked and preprocessed on the host (with `preprocess.device`
-    true only read and checked: the frame program preprocesses, and `normals` is None); at poses[i] when
-    `poses` [N, 4, 4] is given, else at the sequence's pose."""
+def _loader(cfg: MapConfig, label=None, poses=None):
+    """The `Prefetcher` loader of a run of `cfg` (`prepare_frame`, with the range images the map needs)."""
+    from jaxmap.n3.state import N3Static
+
+    evidence = N3Static.from_config(cfg).evidence
+    return functools.partial(prepare_frame, cfg.preprocess, image=evidence, label=label, poses=poses)
+
+
+def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None, poses=None) -> Frame:
+    """`Prefetcher` loader of frame i: read, checked and preprocessed on the host, with its range image
+    when `image` (with `preprocess.device` true only read and checked: the frame program preprocesses,
+    and `normals` is None); at poses[i] when `poses` [N, 4, 4] is given, else at the sequence's pose.
+    label: a `jaxmap.metrics.dynamic.Labeller` (the sequence has moving objects): `dynamic` labels its
+    points here, in the prefetch thread, off the mapping loop."""
     fr = seq.frame(i)
     pose = fr.pose if poses is None else poses[i]
+    img = None
     if cfg_preprocess.device == "true":
-        pts, pose = scan.check_frame(fr.points, pose, i)
-        return Frame(i, int(fr.index), pts, pose)
-    pts, nrm, pose = scan.preprocess(fr.points, pose, cfg_preprocess, i)
-    return Frame(i, int(fr.index), pts, pose, nrm)
+        (pts, pose), nrm = scan.check_frame(fr.points, pose, i), None
+    else:
+        pts, nrm, pose, img = scan.preprocess(fr.points, pose, cfg_preprocess, i, image=image)
+    return Frame(i, int(fr.index), pts, pose, nrm, img,
+                 dynamic=label(pts, pose, int(fr.index)) if label is not None else None)
 
 
 def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
@@ -108,10 +130,12 @@ def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = 
     read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
     (no checkpoints). Returns (N3Mapper, frame_loop.LoopResult)."""
     cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))
+    if len(seq):
+        cfg = scan.resolve_layout(cfg, seq.frame(0).points)
     mapper = N3Mapper(cfg)
     if len(seq):
         mapper.place_origin(poses[0])
-    frames = Prefetcher(seq, 0, len(seq), functools.partial(prepare_frame, cfg.preprocess, poses=poses),
+    frames = Prefetcher(seq, 0, len(seq), _loader(cfg, poses=poses),
                         then=scan.Uploader(mapper.origin, cfg.preprocess.device == "true"))
     return mapper, run_frames(frames, MapSteps(mapper), total=len(seq), progress=Progress(desc, progress))
 
@@ -119,24 +143,28 @@ def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = 
 class MapSteps:
     """The N3 step of the frame loop (`frame_loop.Steps`): each frame's program is dispatched as soon as
     its scan is on the device (`N3Mapper.submit`; the scan was prepared and uploaded ahead by
-    `prepare_frame` and `scan.Uploader`), its record comes back a frame later."""
+    `prepare_frame` and `scan.Uploader`), its record comes back a frame later. With `scores`, each
+    frame's labelled points are counted against those the mapper trained on."""
 
-    def __init__(self, mapper: N3Mapper):
-        self.mapper = mapper
+    def __init__(self, mapper: N3Mapper, scores: dynamic.PointScores | None = None):
+        self.mapper, self.scores = mapper, scores
         self._frames: collections.deque[Frame] = collections.deque()  # submitted, record not back yet
 
     def submit(self, frame: Frame) -> list:
         self._frames.append(frame)
-        return self._paired(self.mapper.submit(frame.batch, prepare_s=frame.prepare_s, wait_s=frame.wait_s))
+        return self._paired(self.mapper.submit(frame.batch, points=len(frame.points), prepare_s=frame.prepare_s,
+                                               wait_s=frame.wait_s))
 
     def drain(self) -> list:
         return self._paired(self.mapper.finish())
 
-    def _paired(self, records: list[dict]) -> list:
+    def _paired(self, finished: list) -> list:
         out = []
-        for r in records:
+        for record, kept in finished:
             frame = self._frames.popleft()
-            out.append((frame, r, frame.pose))
+            if self.scores is not None and frame.dynamic is not None:
+                self.scores.add(frame.dynamic, kept)
+            out.append((frame, record, frame.pose))
         return out
 
 

@@ -16,7 +16,8 @@ import numpy as np
 from jaxmap.errors import DataError
 from jaxmap.geometry import SE3, validate_pose
 from jaxmap.n3.scan_batch import RawScan, ScanBatch
-from jaxmap.preprocess import preprocess_scan
+from jaxmap.preprocess import drop_veil, layout_of, preprocess_points, with_layout
+from jaxmap.range_image import min_range_image
 from jaxmap.sizes import bucket_for  # noqa: F401  (re-exported: the frame loops pad with scan.bucket_for)
 
 log = logging.getLogger("jaxmap")
@@ -42,11 +43,41 @@ def check_frame(points_s, pose, frame: int):
     return clean_points(points_s, frame), pose
 
 
-def preprocess(points_s, pose, cfg_preprocess, frame: int):
-    """(points [M, 3], normals [M, 3]) sensor frame, and the pose [4, 4] float64, checked."""
+def preprocess(points_s, pose, cfg_preprocess, frame: int, image: bool = False):
+    """(points [M, 3], normals [M, 3]) sensor frame, the pose [4, 4] float64, checked, and with `image` the
+    whole scan's range image [H, W] float32 (the free-space evidence's; its layout is cfg_preprocess's),
+    else None. Mixed pixels and isolated returns are dropped first (`preprocess.veil_m`), from both."""
     points_s, pose = check_frame(points_s, pose, frame)
-    pts, nrm = preprocess_scan(points_s, cfg_preprocess)
-    return pts, nrm, pose
+    raw = drop_veil(points_s, cfg_preprocess)
+    pts, nrm = preprocess_points(raw, cfg_preprocess)
+    img = min_range_image(raw, layout_of(cfg_preprocess)) if image else None
+    return pts, nrm, pose, img
+
+
+def needs_layout(cfg) -> bool:
+    """Whether a MapConfig still has to read its range-image layout off a scan (veil filter or free-space
+    evidence on, `preprocess.image_rows` 0)."""
+    return (cfg.evidence.enabled or cfg.preprocess.veil_m > 0) and cfg.preprocess.image_rows == 0
+
+
+def resolve_layout(cfg, points_s, frame: int = 0):
+    """cfg (a MapConfig) with the range-image layout of raw scan points_s [N, 3] (sensor frame) when it has
+    none yet (`needs_layout`), logged; the layout then holds for every scan of the run."""
+    if not needs_layout(cfg):
+        return cfg
+    pts = clean_points(points_s, frame)
+    try:
+        pre = with_layout(cfg.preprocess, pts)
+    except ValueError as e:
+        raise DataError(f"frame {frame}: {e}; set preprocess.image_rows/image_cols/image_elev0_deg/"
+                        "image_elev_step_deg by hand, or turn evidence.enabled and preprocess.veil_m off") from None
+    log.info("range image of the scans: %s (read off frame %d)", layout_of(pre).describe(), frame)
+    return dataclasses.replace(cfg, preprocess=pre)
+
+
+def empty_image(layout) -> np.ndarray:
+    """A range image with no return (a frame whose image is unknown: it says nothing free)."""
+    return np.full((layout.rows, layout.cols), np.inf, np.float32)
 
 
 def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket: int) -> RawScan:
@@ -61,12 +92,13 @@ def to_raw(points_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray, bucket:
 
 
 def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, origin_w: np.ndarray,
-             bucket: int) -> ScanBatch:
+             bucket: int, image: np.ndarray | None = None) -> ScanBatch:
     """Sensor-frame points/normals [M, 3] -> a ScanBatch in the map frame padded to `bucket` rows.
 
     The rigid transform is done in float64 and rounded once, so map-frame coordinates are as
     precise as float32 allows however far the scene is from the world origin. Padding rows sit one
-    metre from the sensor, valid = False.
+    metre from the sensor, valid = False. image: the scan's range image (free-space evidence), carried
+    with the sensor's rotation R_map_sensor; None: neither.
     """
     T_w_s = SE3.from_matrix(pose)
     # T_map_sensor: the map frame is the world frame shifted by origin_w (subtracted in float64 first)
@@ -79,14 +111,16 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
     out_n = np.empty((bucket, 3), np.float32)
     out_p[:n], out_n[:n] = pts, nrm
     out_p[n:], out_n[n:] = sensor + 1.0, (0.0, 0.0, 1.0)
-    return ScanBatch(out_p, out_n, np.arange(bucket) < n, sensor)
+    rot = T_m_s.rotation().matrix.astype(np.float32) if image is not None else None
+    return ScanBatch(out_p, out_n, np.arange(bucket) < n, sensor, rot, image)
 
 
 class Uploader:
     """The last stage of reading ahead (`frame_loop.Prefetcher(then=...)`, one thread, frames in order):
     a prepared frame's scan padded to its bucket (the one of the scans before it while it fits:
     `bucket_for`), in the map frame at `origin_w` [3] float64, put on the device as the frame's `batch`
-    (a ScanBatch, or with `raw` a RawScan the frame program preprocesses). `bucket`: the bucket so far."""
+    (a ScanBatch with the frame's range image if it has one, or with `raw` a RawScan the frame program
+    preprocesses). `bucket`: the bucket so far."""
 
     def __init__(self, origin_w: np.ndarray, raw: bool, bucket: int = 0):
         self.origin_w, self.raw, self.bucket = np.asarray(origin_w, np.float64), raw, bucket
@@ -96,5 +130,5 @@ class Uploader:
         if self.raw:
             batch = to_raw(frame.points, frame.pose, self.origin_w, self.bucket)
         else:
-            batch = to_batch(frame.points, frame.normals, frame.pose, self.origin_w, self.bucket)
+            batch = to_batch(frame.points, frame.normals, frame.pose, self.origin_w, self.bucket, frame.image)
         return dataclasses.replace(frame, batch=jax.device_put(batch))

@@ -14,15 +14,19 @@ import numpy as np
 from jaxmap.geometry import SE3
 from jaxmap.n3.state import N3Static
 from jaxmap.preprocess_device import crop_mask, preprocess_scan, voxel_keep
+from jaxmap.range_image import min_range_image_jax, veil_keep
 
 
 class ScanBatch(NamedTuple):
-    """One preprocessed scan in the map frame, padded to a bucket size N."""
+    """One preprocessed scan in the map frame, padded to a bucket size N, and (free-space evidence on) the
+    whole scan's range image with the sensor's rotation."""
 
     points: jax.Array    # [N, 3] float32 map frame
     normals: jax.Array   # [N, 3] float32 unit, oriented towards the sensor
     valid: jax.Array     # [N] bool, False for padding
     sensor: jax.Array    # [3] float32 sensor position, map frame
+    rotation: jax.Array | None = None  # [3, 3] float32 R_map_sensor
+    image: jax.Array | None = None     # [H, W] float32 nearest return per pixel (inf: none), `range_image`
 
 
 class RawScan(NamedTuple):
@@ -39,12 +43,18 @@ def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, 
     """Crop, downsample and normals of a raw scan (`jaxmap.preprocess_device`), its kept points in
     their input order moved to the map frame and packed into `rows` rows (padding as `scan.to_batch`).
     Returns (ScanBatch [rows], points kept [] int32, overflow [] bool: more kept points than rows)."""
-    pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw.valid, static.preprocess, rows)
+    cfg = static.preprocess
+    raw_valid = raw.valid
+    if cfg.veil_m > 0:
+        raw_valid = raw_valid & veil_keep(raw.points, static.image, cfg.veil_m, valid=raw_valid, xp=jnp)
+    image = min_range_image_jax(raw.points, raw_valid, static.image) if static.evidence else None
+    pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw_valid, cfg, rows)
     T_m_s = SE3.from_rotation_and_translation(raw.rotation, raw.translation)  # (full float32 on a GPU: `geometry`)
     pts, nrm = T_m_s.apply(pts_s), T_m_s.rotation().apply(nrm_s)
     pts = jnp.where(valid[:, None], pts, raw.translation + 1.0)
     nrm = jnp.where(valid[:, None], nrm, np.array([0.0, 0.0, 1.0], np.float32))
-    return ScanBatch(pts, nrm, valid, raw.translation), kept, kept > rows
+    return (ScanBatch(pts, nrm, valid, raw.translation, raw.rotation if static.evidence else None, image), kept,
+            kept > rows)
 
 
 @functools.partial(jax.jit, static_argnums=0)

@@ -21,7 +21,8 @@ import optax
 
 from jaxmap.grid import hashing
 from jaxmap.grid.features import init_feature_rows
-from jaxmap.n3 import adam, pool, window
+from jaxmap.n3 import adam, evidence as n3evidence, pool, window
+from jaxmap.preprocess import layout_of
 from jaxmap.n3.decoder import init_decoder
 from jaxmap.sizes import pow2, round_up
 
@@ -71,6 +72,11 @@ class N3Static:
     min_leaf_corners: int
     preprocess: object = None   # the PreprocessConfig when scans are preprocessed inside the frame program
     #                             (preprocess.device true, or auto on a GPU: `preprocess_device.resolve`)
+    evidence: bool = False      # free-space evidence per voxel (`jaxmap.n3.evidence`)
+    evidence_margin: float = 0.1
+    void_frames: int = 2
+    raise_pairs: bool = True
+    image: object = None        # the scans' range_image.Layout (evidence: the frame's range image; None: off)
     # Corner allocations per `integrate` pass (a static batch of L*8 keys each): a typical frame
     # of the city brings ~1700 new voxels (max ~6000); the first frame ~20000 takes 3 passes.
     new_voxels_per_pass: int = 8192
@@ -79,6 +85,7 @@ class N3Static:
     def from_config(cls, cfg) -> "N3Static":
         g, s, t, w, m = cfg.grid, cfg.sampling, cfg.train, cfg.window, cfg.mesh
         leaf = float(g.leaf_vox_size)
+        on_device = _on_device(cfg.preprocess)
         return cls(
             leaf=leaf, levels=g.feature_levels, feature_dim=g.feature_dim, hidden_dim=cfg.decoder.hidden_dim,
             hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
@@ -94,7 +101,10 @@ class N3Static:
             block_policy=w.block_policy, pairs_per_frame=w.pairs_per_frame,
             radius_vox=int(math.ceil(cfg.preprocess.max_range_m / leaf)), max_load=g.max_load,
             mask_level=m.mask_level, min_leaf_corners=m.min_leaf_corners,
-            preprocess=_on_device(cfg.preprocess),
+            preprocess=on_device,
+            evidence=cfg.evidence.enabled and cfg.preprocess.image_rows > 0, evidence_margin=cfg.evidence.margin_m,
+            void_frames=cfg.evidence.void_frames, raise_pairs=cfg.evidence.raise_pairs,
+            image=layout_of(cfg.preprocess) if cfg.evidence.enabled or on_device is not None else None,
         )
 
     @property
@@ -135,6 +145,7 @@ class N3State:
     decoder_opt: optax.ScaleByAdamState    # Adam moments of the decoder (optax.adam's state, less its empty lr part)
     store: window.PairStore                # voxel-oriented training pairs and the current window
     pool: pool.PairPool | None             # flat pool of pairs (replay / keyframe ablations), else None
+    evidence: n3evidence.Evidence | None   # per voxel row: frames seen free since the last hit (None: off)
     origin_vox: jax.Array                  # [3] int32: map origin in leaf voxels (world = map + origin)
     key: jax.Array                         # PRNG key, split once per frame
     frame: jax.Array                       # [] int32 frames integrated and trained so far
@@ -201,6 +212,7 @@ def init_state(static: N3Static, cfg, caps: Capacities) -> N3State:
         decoder_opt=optax.scale_by_adam().init(dec),
         store=window.create(caps.store_blocks, caps.pairs_per_block, caps.voxel_rows),
         pool=pool.create(caps.pool_pairs) if static.uses_pool else None,
+        evidence=n3evidence.create(caps.voxel_rows) if static.evidence else None,
         origin_vox=jnp.zeros((3,), jnp.int32),
         key=jax.random.PRNGKey(t.seed),
         frame=jnp.zeros((), jnp.int32),

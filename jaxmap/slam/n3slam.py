@@ -52,20 +52,21 @@ def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
 class SlamFrame(Frame):
     """A frame of a SLAM loop, its host work done in the prefetch threads: `points` as read (for the
     front end and the tracker), `prepared` the map's preprocessing of it (N3: (points, normals) sensor
-    frame; the latent map: `ImtMapper.prepare`'s HostScan; None: not made ahead), `odometry_scan` the
-    odometry's (`slam.odometry_common.Scan`: downsampled points and normals at two levels)."""
+    frame, and `image` the scan's range image for the map's free-space evidence, None when it is off; the
+    latent map: `ImtMapper.prepare`'s HostScan; None: not made ahead), `odometry_scan` the odometry's
+    (`slam.odometry_common.Scan`: downsampled points and normals at two levels)."""
 
     prepared: tuple | None = None
     odometry_scan: object = None
 
 
-def prepare_slam_frame(cfg: SlamConfig, cfg_preprocess, seq, i: int) -> SlamFrame:
-    """`Prefetcher` loader: the frame as read, its N3-preprocessed points and normals, and the odometry's
-    scan, each made once, off the main thread."""
+def prepare_slam_frame(cfg: SlamConfig, cfg_preprocess, seq, i: int, image: bool = False) -> SlamFrame:
+    """`Prefetcher` loader: the frame as read, its N3-preprocessed points and normals (and range image),
+    and the odometry's scan, each made once, off the main thread."""
     fr = seq.frame(i)
-    pts, nrm, _ = scan.preprocess(fr.points, np.eye(4), cfg_preprocess, i)
+    pts, nrm, _, img = scan.preprocess(fr.points, np.eye(4), cfg_preprocess, i, image=image)
     raw = scan.clean_points(fr.points, i)
-    return SlamFrame(i, int(fr.index), raw, fr.pose, prepared=(pts, nrm),
+    return SlamFrame(i, int(fr.index), raw, fr.pose, image=img, prepared=(pts, nrm),
                      odometry_scan=Scan(raw, cfg.frontend.odometry))
 
 
@@ -92,6 +93,7 @@ class N3SlamStep:
         self.cfg, self.mapper, self.track, self.viewer = cfg, mapper, track, viewer
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
         self.prepared: list[tuple] = []          # per frame: (points, normals) sensor frame
+        self.images: list = []                   # per frame: its range image (None: evidence off)
         self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at
         self.counter: list[int] = []             # per frame: its number in the map (`N3Mapper.frames` as added)
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
@@ -122,9 +124,10 @@ class N3SlamStep:
             r = self.fe.add_frame(frame.points, refine=self._refine(pts), scan=frame.odometry_scan)
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
             self.prepared.append(frame.prepared)
+            self.images.append(frame.image)
             self.mapped_at.append(r.pose.copy())
             self.counter.append(self.mapper.frames)
-            info = self.mapper.add_frame(None, None, prepared=(*frame.prepared, r.pose))
+            info = self.mapper.add_frame(None, None, prepared=(*frame.prepared, r.pose, frame.image))
             record = dict(r.timings, map_s=info["total_s"], loss=info["loss"], loops=len(self.loops),
                           ok=r.odometry_ok, tracked=r.refined)
             if r.optimized:
@@ -160,7 +163,7 @@ class N3SlamStep:
         removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
         for i in redo:
             self.counter[i] = mapper.frames
-            mapper.add_frame(None, None, prepared=(*self.prepared[i], traj[i]))
+            mapper.add_frame(None, None, prepared=(*self.prepared[i], traj[i], self.images[i]))
             self.mapped_at[i] = traj[i].copy()
         rec = {"frame": frame_index, "mode": mode, "frames": len(traj), "reintegrated": len(redo),
                "pairs_removed": removed,
@@ -179,7 +182,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     if track is None and cfg.n3_track:
         track = default_tracker(cfg.n3_track_min_valid)
     step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
-    load = lambda s, i: prepare_slam_frame(cfg, mapper.cfg.preprocess, s, i)  # noqa: E731
+    load = lambda s, i: prepare_slam_frame(cfg, mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
     loop = run_frames(Prefetcher(seq, 0, len(seq), load), step, total=len(seq), progress=bar, viewer=viewer)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,

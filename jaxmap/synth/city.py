@@ -25,16 +25,22 @@ the SHINE/N3 pose convention:
                              + a uchar class per point: CITY_CLASSES), hidden surfaces removed
     meta.json                stats and parameters (deterministic: no timings)
     pedestrians.json         (only with pedestrians=True) per-frame pedestrian boxes
-    moving_objects.json      (only with traffic > 0) per-frame boxes of the moving objects:
+    moving_objects.json      (only with traffic > 0 or parking) per-frame boxes of the moving objects:
                              {"format": "jaxmap moving objects v1", "frames": F, "objects": [{"id", "kind":
-                             "car" | "pedestrian", "size_xyz_m": [l, w, h], "poses": [[x, y, z_base, yaw] or
-                             null per frame]}]}: centre (x, y) in the world frame, bottom z_base, top z_base + h,
-                             length l along yaw (radians about +z), width w across; 4 decimals
+                             "car" | "pedestrian", "role", "size_xyz_m": [l, w, h], "poses": [[x, y, z_base,
+                             yaw] or null per frame]}]}: centre (x, y) in the world frame, bottom z_base, top
+                             z_base + h, length l along yaw (radians about +z), width w across; 4 decimals
 
 Traffic (traffic=N, `jaxmap.synth.traffic`): N moving boxes in the scans, never in the ground truth: ~2/3
-cars on the drive's lanes (ahead in the sensor's lane >= 8 m away, oncoming, overtaking; 5-12 m/s with the
-ego at 10 m/s, a frame = spacing / 10 m/s, 0.1 s at the default's ~1 m) and pedestrians (1.3-1.5 m/s) on the
-sidewalks and (grid) across the side streets. Grid (default, small) and suburb layouts; not with long.
+cars, taking turns at driving ahead of the sensor in its lane (>= 8 m away), oncoming (grid: straight along
+the drive's streets, meeting the sensor there) and overtaking it (up to 17 m/s with the ego at 10 m/s, a
+frame = spacing / 10 m/s, 0.1 s at the default's ~1 m), moving like cars (|acceleration| <= 2.5 m/s^2,
+turning radius >= 5 m, yaw along the motion); the rest pedestrians (1.3-1.5 m/s) crossing the drive's
+street ahead of the sensor, on the sidewalks and (grid) across the side streets. parking=True adds a
+parked car that drives off mid-sequence and one that parks mid-sequence: the ground truth is the static
+world at the end, so the car that parked is in it (class "parked_car", the ground under it cut away) and
+listed in moving_objects.json only while it moves; the car that left is listed at every frame it is in
+the scans. Grid (default, small) and suburb layouts; not with long.
 
 Real-sensor artifacts (realistic=..., each switchable; "all" = every one), applied on the organised
 beams x azimuth grid of each frame before the invalid rays are dropped:
@@ -144,7 +150,8 @@ GT_NEAR_M = 1.0
 OBS_VOXEL_M = 0.1
 CITY_CLASSES = ("road", "sidewalk", "curb", "building", "car", "vegetation", "pole", "fence")
 _KIND_CLASS = {"building": 3, "house": 3, "car": 4, "trunk": 5, "crown": 5, "hedge": 5, "pole": 6, "sign": 6,
-               "fence": 7, "railing": 7}  # "ground": road / sidewalk / curb by its normal and height
+               "fence": 7, "railing": 7, "parked_car": 8}  # "ground": road / sidewalk / curb by its normal and height
+PARKED_CAR_CLASS = "parked_car"  # class 8, after CITY_CLASSES, only in a city with parking: the car that parked
 LAYOUTS = ("grid", "suburb")
 REALISTIC = ("mixed", "dropout", "outliers", "beam_offsets")
 MIXED_JUMP_M = 0.3
@@ -733,7 +740,8 @@ def _pedestrian_mesh(peds):
 def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
                   noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
                   pedestrians: bool = False, long: bool = False, layout: str = "grid", traffic: int = 0,
-                  realistic: str | tuple = (), lane_shift_m: float = 0.0, start_m: float = 0.0) -> dict:
+                  realistic: str | tuple = (), lane_shift_m: float = 0.0, start_m: float = 0.0,
+                  parking: bool = False) -> dict:
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
@@ -750,6 +758,10 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
             ring boulevard with detached houses, ~130 m non-rectangular loop; with small, a smaller ring).
     traffic: N moving objects (~2/3 cars on the lanes, the rest pedestrians; `jaxmap.synth.traffic`) in the
              scans, never in the ground truth; written to moving_objects.json (grid and suburb, not long).
+    parking: two more cars (also with traffic=0): one parked at the start that drives off mid-sequence
+             (never in the ground truth, listed in moving_objects.json at every frame) and one that parks
+             mid-sequence and stays (in the ground truth at its place, GT class "parked_car"; listed only
+             while it moves): the ground truth is the static world at the end of the sequence.
     realistic: real-sensor artifacts, "all" or any of REALISTIC ("mixed,dropout,outliers,beam_offsets"; see
                the module docstring).
     lane_shift_m, start_m: a second drive through the same city (grid and small loops, not long or suburb):
@@ -772,8 +784,11 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     traffic = int(traffic)
     if traffic < 0:
         raise ValueError("traffic must be >= 0")
-    if traffic and long:
-        raise ValueError("traffic is not available with long (the grid and suburb loops only)")
+    if (traffic or parking) and long:
+        raise ValueError("traffic and parking are not available with long (the grid and suburb loops only)")
+    if (traffic or parking) and (lane_shift_m or start_m):
+        raise ValueError("traffic and parking follow the first drive's lanes; they do not combine with "
+                         "lane_shift_m / start_m")
     modes = realistic_modes(realistic)
     P = preset(small, long, layout)
     n_frames = int(n_frames or P.frames)
@@ -807,7 +822,9 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         peds = suburb.pedestrian_boxes(P, seed, n_frames, 0.15 * spacing)
     else:
         peds = _pedestrian_boxes(P, seed, n_frames, 0.15 * spacing, ped_block) if pedestrians else None
-    movers = _traffic_plan(P, layout, seed, traffic, path, scene, n_frames, spacing) if traffic else []
+    movers = _traffic_plan(P, layout, seed, traffic, path, scene, n_frames, spacing, parking) \
+        if traffic or parking else []
+    parker = next((k for k, o in enumerate(movers) if o["role"] == "parking"), None)
     refl_static = _reflectivity(scene.kinds, seed) if "dropout" in modes else None
     if movers and refl_static is not None:
         refl_movers = _reflectivity([o["kind"] for o in movers], seed, 506)
@@ -837,6 +854,9 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
             mv, mf, owner = traffic_mod.frame_mesh(movers, i)
             tm, nrm_m, pid_m = C.Raycaster(mv, mf).cast(o, dirs_w, return_ids=True)
             on_mover = tm < t
+            if parker is not None and not movers[parker]["listed"][i]:  # parked: the end's static world
+                on_parked = on_mover & (owner[np.maximum(pid_m, 0)] == parker) & (tm <= MAX_RANGE)
+                observed.add(o + dirs_w[on_parked] * tm[on_parked, None])
             t = np.where(on_mover, tm, t)
             nrm = np.where(on_mover[:, None], nrm_m, nrm)
             if refl_static is not None:
@@ -879,7 +899,11 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     elif os.path.exists(mov_file):
         os.remove(mov_file)
 
-    # ---- ground truth
+    # ---- ground truth: the static world at the end of the sequence (with the car that parked)
+    classes = CITY_CLASSES
+    if parker is not None:
+        V, F, obj = _add_parked_car(scene, movers[parker])
+        classes = CITY_CLASSES + (PARKED_CAR_CLASS,)
     write_mesh_ply(os.path.join(out_dir, "gt_mesh.ply"), V, F)
     # sampled in pieces of ~2M points (bounded memory), only faces that come within 1 m of an observation
     gt_pts, gt_nrm, gt_cls = _gt_points(V, F, obj, scene, P.gt_density, seed, observed.points())
@@ -905,14 +929,19 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         "objects": kinds, "pedestrians": (P.pedestrians if pedestrians else 0),
         "gt": {"mesh_triangles": int(len(F)), "points": int(len(gt_pts)),
                "density_per_m2": P.gt_density, "surface_area_m2": round(float(C.mesh_area(V, F).sum()), 2),
-               "near_observation_m": GT_NEAR_M, "classes": list(CITY_CLASSES),
-               "class_points": {c: int(n) for c, n in zip(CITY_CLASSES, np.bincount(gt_cls, minlength=len(CITY_CLASSES)))}},
+               "near_observation_m": GT_NEAR_M, "classes": list(classes),
+               "class_points": {c: int(n) for c, n in zip(classes, np.bincount(gt_cls, minlength=len(classes)))}},
     }
     if long:
         meta["long"] = True
-    if traffic:
+    if movers:
         n_cars = sum(o["kind"] == "car" for o in movers)
-        meta["traffic"] = {"cars": n_cars, "pedestrians": len(movers) - n_cars}
+        roles = {}
+        for o in movers:
+            roles[o["role"]] = roles.get(o["role"], 0) + 1
+        meta["traffic"] = {"cars": n_cars, "pedestrians": len(movers) - n_cars, "roles": roles}
+        if parking:
+            meta["traffic"]["parking"] = _parking_meta(movers)
         meta["moving_points_share"] = round(moving_points / max(sum(counts), 1), 5)
     if modes:
         meta["sensor"]["realistic"] = list(modes)
@@ -923,18 +952,24 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     return dict(meta, elapsed_s=round(elapsed, 2), out_dir=out_dir)
 
 
-def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int, spacing: float) -> list:
-    """The moving objects of generate_city(traffic=n) (`jaxmap.synth.traffic.plan` on this layout's lanes
-    and sidewalks)."""
+def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int, spacing: float,
+                  parking: bool = False) -> list:
+    """The moving objects of generate_city(traffic=n, parking=...) (`jaxmap.synth.traffic.plan` on this
+    layout's lanes, curbs and sidewalks)."""
     parked = traffic_mod.footprints_of(scene, "car")
+    obstacles = [fp for k in ("pole", "trunk", "sign") for fp in traffic_mod.footprints_of(scene, k)]
     ego_s = np.arange(n_frames) * spacing
     half_car = HALF_CAR
     if layout == "suburb":
         w = P.road_width / 2
         b = w - 1.1 - 0.925 - 0.025  # the parked cars' inner edge (outer curb), a margin
-        lane_same, lane_opp = b - half_car, -w + 1.5 + half_car
-        loops, sides, crossings = [suburb.CurvePath(P, w + 1.3)], [], []
-        curb_z = lambda xy: np.full(len(xy), CURB_H)  # noqa: E731
+        # a straight car on the curved lane bulges towards the parked cars by its (grown) half length's
+        # sagitta at the ring's sharpest bend (0.19 m on the default ring, 0.36 m on the small one)
+        table = traffic_mod.PathTable(path)
+        bend = float(np.abs(np.diff(table.yaw) / np.diff(table.s)).max())
+        lane_same, lane_opp = b - half_car - (0.5 * (4.4 + 0.3)) ** 2 * bend / 2 - 0.03, -w + 1.5 + half_car
+        loops, sides, crossings, through = [suburb.CurvePath(P, w + 1.3)], [], [], []
+        curb_z = suburb.ground_height(P)
     else:
         w = P.road_width / 2
         lane_same, lane_opp = (d + P.lane_offset for d in traffic_lanes(P))  # (parked cars on both curbs)
@@ -951,6 +986,14 @@ def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int,
                 crossings.append(((cx - e, sy * (P.street_y + w + 0.5)), (cx + e, sy * (P.street_y + w + 0.5))))
                 crossings.append(((sx * (P.street_x + w + 0.5), cy - e), (sx * (P.street_x + w + 0.5), cy + e)))
 
+        # the four streets of the loop, straight across the city and 55 m beyond it (cars come and go out
+        # of the sensor's range), directed against the counter-clockwise drive; their lane: the drive's
+        # opposite lane
+        X, Y = xb[-1] + 55.0, yb[-1] + 55.0
+        sx, sy = P.street_x, P.street_y
+        through = [(p0, p1, -lane_opp) for p0, p1 in (((X, -sy), (-X, -sy)), ((sx, Y), (sx, -Y)),
+                                                     ((-X, sy), (X, sy)), ((-sx, -Y), (-sx, Y)))]
+
         def curb_z(xy):
             i = np.searchsorted(xb, xy[:, 0]) - 1
             j = np.searchsorted(yb, xy[:, 1]) - 1
@@ -964,7 +1007,69 @@ def _traffic_plan(P, layout: str, seed: int, n: int, path, scene, n_frames: int,
         lat = (P.ped_from_curb - near, P.ped_from_curb - far)
     return traffic_mod.plan(n, seed, path, ego_s, spacing, lane_same=lane_same - off, lane_opposite=lane_opp - off,
                             parked=parked, ped_paths=sides, ped_loops=loops, crossings=crossings, curb_z=curb_z,
-                            ped_loop_lat=lat)
+                            ped_loop_lat=lat, parking=parking, obstacles=obstacles, through_streets=through)
+
+
+def traffic_of(seed: int = 0, traffic: int = 0, *, small: bool = False, layout: str = "grid",
+               n_frames: int | None = None, parking: bool = False):
+    """The moving objects generate_city(seed, small, layout, n_frames, traffic, parking) puts in the scans,
+    without casting a scan: (objects (`jaxmap.synth.traffic.plan`), T_world_lidar [F,4,4], spacing (m))."""
+    P = preset(small, False, layout)
+    path, T_wl, spacing = preset_drive(P, n_frames, layout=layout)
+    scene = (suburb.build_suburb(P, seed, path) if layout == "suburb" else build_city(P, seed, path))[3]
+    return _traffic_plan(P, layout, seed, traffic, path, scene, len(T_wl), spacing, parking), T_wl, spacing
+
+
+def _parking_meta(movers) -> dict:
+    """meta.json's "traffic": "parking": per parking car its id in moving_objects.json, its place (x, y,
+    yaw; world frame) and the frame it departs at / is parked from."""
+    out = {}
+    for k, o in enumerate(movers):
+        if o["role"] == "leaving":
+            out["leaving"] = {"id": k, "place_xy_yaw": C.rounded(o["poses"][0][[0, 1, 3]], 4),
+                              "departs_at_frame": o["event_frame"]}
+        elif o["role"] == "parking":
+            out["parking"] = {"id": k, "place_xy_yaw": C.rounded(o["poses"][-1][[0, 1, 3]], 4),
+                              "parked_from_frame": o["event_frame"]}
+    return out
+
+
+def _add_parked_car(scene: Scene, car: dict):
+    """The static scene with the car that parked (its box at its last pose, kind "parked_car"; the ground
+    cut away under it, as nothing sees it there): (vertices [V,3], faces [F,3], object id per face [F]).
+    Changes `scene` (object 0 is the ground)."""
+    x, y, z, yaw = car["poses"][-1]
+    l, w, h = car["size"]
+    box = C.oriented_box((x, y), (l, w), yaw, z, z + h, bottom=False)
+    scene.parts[0] = _outside_footprint(scene.parts[0], box[0][:4, :2])
+    scene.add(box, PARKED_CAR_CLASS)
+    return scene.build()
+
+
+def _outside_footprint(mesh, footprint):
+    """The part of a surface (vertices [V,3], faces [F,3]) outside the vertical prism over a convex
+    footprint [n,2]: its faces near the footprint cut along the footprint's sides
+    (`trimesh.intersections.slice_faces_plane`), the pieces inside dropped."""
+    from trimesh.intersections import slice_faces_plane
+
+    v, f = np.asarray(mesh[0], dtype=np.float64), np.asarray(mesh[1])
+    poly = np.asarray(footprint, dtype=np.float64)
+    if C.polygon_area2(poly) < 0:
+        poly = poly[::-1]  # counter-clockwise: the right of each side is outside
+    tri = v[f]
+    lo, hi = poly.min(0), poly.max(0)
+    near = np.all((tri[..., :2].max(1) >= lo) & (tri[..., :2].min(1) <= hi), axis=1)
+    pieces, rest = [(v, f[~near])], (v, f[near])
+    for a, b in zip(poly, np.roll(poly, -1, axis=0)):
+        normal, origin = np.array([b[1] - a[1], a[0] - b[0], 0.0]), np.array([a[0], a[1], 0.0])
+        pieces.append(slice_faces_plane(*rest, normal, origin)[:2])
+        rest = slice_faces_plane(*rest, -normal, origin)[:2]
+    mb = C.MeshBuilder()
+    for pv, pf in pieces:
+        if len(pf):
+            used, inv = np.unique(pf, return_inverse=True)
+            mb.add((pv[used], inv.reshape(pf.shape)))
+    return mb.build()
 
 
 class _ObservedPoints:

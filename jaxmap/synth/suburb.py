@@ -80,6 +80,18 @@ def ring_path(P: SuburbPreset) -> CurvePath:
     return CurvePath(P, P.lane_offset)
 
 
+def ground_height(P: SuburbPreset):
+    """ground_z(xy [N,2]) -> [N]: 0 on the ring road (radially within road_width / 2 of its centre line),
+    CURB_H elsewhere (the park inside, the raised ground outside)."""
+    w = P.road_width / 2
+
+    def ground_z(xy):
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        r, th = np.hypot(xy[:, 0], xy[:, 1]), np.arctan2(xy[:, 1], xy[:, 0])
+        return np.where(np.abs(r - _radius(P, th)) < w, 0.0, CURB_H)
+    return ground_z
+
+
 def _ground(P: SuburbPreset):
     """Polar grid: the inner park (raised), the road (z = 0), the outer ground (raised), and the two curb
     faces; tiles of at most ~TILE m; normals up (ground) or towards the road (curbs)."""

@@ -1,0 +1,266 @@
+"""A spinning LiDAR's scan as its organised range image: rows by elevation, columns by azimuth.
+
+    layout = estimate_layout(points_s)              # once, from the first raw scan (sensor frame)
+    row, col, rng, inside = pixels(points_s, layout) # numpy or jax.numpy (xp=jnp)
+    image = min_range_image(points_s, layout)        # [H, W] float32, inf where no return
+    keep = veil_keep(points_s, layout, tol_m=0.15)   # mixed pixels and isolated returns dropped
+
+No ring field is needed: a spinning LiDAR fires each beam at a fixed elevation, so the elevations of one
+scan fall into as many tight clusters as it has beams, and its azimuth steps are regular. The layout is
+read off those (`estimate_layout`): one row per beam (uniform rows at the mean beam spacing) and one
+column per azimuth step. A sensor without beams (a depth camera, a solid-state LiDAR) gets a uniform
+spherical grid at its angular sampling. Pixels with several returns keep the nearest (`min`); pixels
+without a return are `inf`: nothing is known there.
+
+Everything is in the sensor frame (x forward, z up): elevation = atan2(z, |xy|), azimuth = atan2(y, x).
+The functions take `xp` (numpy or jax.numpy) where both sides need them: the host preprocesses with
+numpy, the frame program (`preprocess.device`, the N3 map's free-space evidence) with jax.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+BEAM_GAP_RAD = math.radians(0.08)   # elevations further apart than this are different beams
+MIN_RANGE_M = 0.5                    # returns nearer than this say nothing of the layout (the ego vehicle)
+MAX_ROWS, MAX_COLS = 512, 4096
+
+
+@dataclasses.dataclass(frozen=True)
+class Layout:
+    """The pixel grid of a range image (hashable: a static argument of compiled programs).
+
+    rows, cols: image size; elev0: elevation (radians) of the lower edge of row 0; elev_step: rows'
+    height (radians); cols span the full turn, column c covering azimuths [az0 + c w, az0 + (c+1) w)
+    (mod 2 pi), w = 2 pi / cols: az0 puts the first scan's azimuth steps at the columns' centres.
+    """
+
+    rows: int
+    cols: int
+    elev0: float
+    elev_step: float
+    az0: float = -math.pi
+
+    @property
+    def col_step(self) -> float:
+        return 2.0 * math.pi / self.cols
+
+    def describe(self) -> str:
+        return (f"{self.rows} x {self.cols} pixels, elevation {math.degrees(self.elev0):.2f} to "
+                f"{math.degrees(self.elev0 + self.rows * self.elev_step):.2f} deg "
+                f"({math.degrees(self.elev_step):.3f} x {math.degrees(self.col_step):.3f} deg)")
+
+
+def _angles(points_s, xp=np):
+    """(elevation [N], azimuth [N], range [N]) of sensor-frame points [N, 3]."""
+    x, y, z = points_s[:, 0], points_s[:, 1], points_s[:, 2]
+    horiz = xp.sqrt(x * x + y * y)
+    return xp.arctan2(z, horiz), xp.arctan2(y, x), xp.sqrt(horiz * horiz + z * z)
+
+
+def estimate_layout(points_s: np.ndarray) -> Layout:
+    """The range-image layout of one raw scan (sensor frame, [N, 3]; the whole scan, before any crop or
+    downsampling, as it left the sensor). ValueError when the scan has too few returns to tell."""
+    p = np.asarray(points_s, np.float64).reshape(-1, 3)
+    el, az, rng = _angles(p)
+    ok = np.isfinite(rng) & (rng > MIN_RANGE_M)
+    el, az = el[ok], az[ok]
+    if len(el) < 100:
+        raise ValueError(f"a scan of {len(el)} returns beyond {MIN_RANGE_M} m is too small to read the "
+                         "sensor's range-image layout from")
+    order = np.argsort(el)
+    e = el[order]
+    cut = np.flatnonzero(np.diff(e) > BEAM_GAP_RAD) + 1
+    starts, ends = np.r_[0, cut], np.r_[cut, len(e)]
+    sizes = ends - starts
+    # Beams hold a whole turn of returns; a cluster of a few points is a stray (an outlier, a mixed pixel).
+    beams = sizes >= max(8, 0.05 * np.median(sizes))
+    n_beams = int(beams.sum())
+    if 2 <= n_beams <= MAX_ROWS and n_beams >= 0.5 * len(sizes):
+        centres = np.array([np.median(e[s:t]) for s, t in zip(starts[beams], ends[beams])])
+        step = float((centres[-1] - centres[0]) / (n_beams - 1))
+        rows = n_beams
+        lo = float(centres[0] - 0.5 * step)
+        # the azimuth step of the fullest beam: the median gap between its sorted azimuths
+        s, t = starts[beams][np.argmax(sizes[beams])], ends[beams][np.argmax(sizes[beams])]
+        a = np.sort(az[order[s:t]])
+        gaps = np.diff(a)
+        col_step = float(np.median(gaps[gaps > 1e-7])) if np.any(gaps > 1e-7) else 2 * math.pi / 1024
+        phase_of = a
+    else:
+        # no beams: a uniform grid at the scan's angular sampling (the median angle to the nearest neighbour)
+        from scipy.spatial import cKDTree
+
+        u = p[ok] / np.linalg.norm(p[ok], axis=1, keepdims=True)
+        sub = u[:: max(1, len(u) // 20000)]
+        d, _ = cKDTree(u).query(sub, k=2)
+        step = col_step = float(np.median(d[:, 1]))
+        lo = float(e[0] - 0.5 * step)
+        rows = int(math.ceil((e[-1] - e[0]) / step)) + 1
+        phase_of = az[:0]
+    cols = int(np.clip(round(2 * math.pi / max(col_step, 1e-6)), 16, MAX_COLS))
+    if rows > MAX_ROWS:
+        step = step * rows / MAX_ROWS
+        rows = MAX_ROWS
+    w = 2 * math.pi / cols
+    # the azimuth steps' phase (a circular mean), so that they fall at the columns' centres, not on edges
+    ang = (phase_of + math.pi) / w * 2 * math.pi
+    phase = (math.atan2(np.sin(ang).mean(), np.cos(ang).mean()) / (2 * math.pi) * w) if len(ang) else 0.5 * w
+    return Layout(rows=int(rows), cols=cols, elev0=lo, elev_step=float(step), az0=float(-math.pi + phase - 0.5 * w))
+
+
+def pixels(points_s, layout: Layout, xp=np):
+    """(row [N] int32, col [N] int32, range [N] float32, inside [N] bool: the row is in the image) of
+    sensor-frame points [N, 3]."""
+    el, az, rng = _angles(points_s, xp)
+    rowf = xp.floor((el - layout.elev0) / layout.elev_step)
+    inside = (rowf >= 0) & (rowf < layout.rows)
+    row = xp.clip(rowf, 0, layout.rows - 1).astype(xp.int32)
+    col = xp.floor((az - layout.az0) / layout.col_step).astype(xp.int32) % layout.cols
+    return row, col, rng.astype(xp.float32), inside
+
+
+def min_range_image(points_s: np.ndarray, layout: Layout, valid: np.ndarray | None = None) -> np.ndarray:
+    """[rows, cols] float32: the nearest return of each pixel, inf where none (numpy; host)."""
+    row, col, rng, inside = pixels(np.asarray(points_s, np.float32), layout)
+    ok = inside & np.isfinite(rng) & (rng > 0)
+    if valid is not None:
+        ok &= valid
+    flat = row[ok].astype(np.int64) * layout.cols + col[ok]
+    r = rng[ok]
+    # the nearest of each pixel: sort by pixel, then by range; the first of each run
+    order = np.lexsort((r, flat))
+    f = flat[order]
+    first = np.r_[True, f[1:] != f[:-1]] if len(f) else np.zeros(0, bool)
+    image = np.full(layout.rows * layout.cols, np.inf, np.float32)
+    image[f[first]] = r[order][first]
+    return image.reshape(layout.rows, layout.cols)
+
+
+def min_range_image_jax(points_s, valid, layout: Layout):
+    """`min_range_image` in jax (inside a compiled program): points_s [N, 3], valid [N] bool."""
+    import jax.numpy as jnp
+
+    row, col, rng, inside = pixels(points_s, layout, jnp)
+    ok = valid & inside & jnp.isfinite(rng) & (rng > 0)
+    flat = jnp.where(ok, row * layout.cols + col, layout.rows * layout.cols)
+    image = jnp.full((layout.rows * layout.cols,), jnp.inf, jnp.float32).at[flat].min(rng, mode="drop")
+    return image.reshape(layout.rows, layout.cols)
+
+
+def _neighbour(image, dr: int, dc: int, xp):
+    """The image shifted so that out[r, c] = image[r + dr, c + dc]: columns wrap around (a full turn),
+    rows beyond the image are inf."""
+    out = xp.roll(image, -dc, axis=1) if dc else image
+    if abs(dr) >= image.shape[0]:
+        return xp.full(image.shape, np.inf, image.dtype)
+    if dr:
+        pad = xp.full((abs(dr), image.shape[1]), np.inf, image.dtype)
+        out = xp.concatenate([out[dr:], pad]) if dr > 0 else xp.concatenate([pad, out[:dr]])
+    return out
+
+
+def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
+    """[N] bool: the returns to keep once mixed pixels and isolated returns are dropped (the veil, or
+    shadow-point, test of LiDAR pipelines, on the organised scan).
+
+    A mixed pixel lies between a foreground and a background surface: along its beam it continues
+    neither its left nor its right neighbours, and neither do the beams above and below it at its
+    azimuth. A return on a real surface continues at least one side in at least one direction: the
+    linear extrapolation of the two pixels beyond a neighbour (2 a1 - a2) predicts it within tol_m (or,
+    where the second pixel is empty, the neighbour's range does). Grazing surfaces (ranges rising steadily along the
+    beam) pass the extrapolation; an isolated return (an outlier) has no neighbour that predicts it.
+
+    points_s [N, 3] sensor frame (the whole raw scan: neighbours must not be cropped away); valid [N]
+    bool or None; tol_m: a multiple of the range noise (0.15 m for 2 cm noise). Pixels holding several
+    returns test each against the image's nearest ones.
+    """
+    row, col, rng, inside = pixels(points_s, layout, xp)
+    flat = row * layout.cols + col
+    if valid is None:
+        valid = xp.ones(points_s.shape[0], bool)
+
+    def image_of(ok):
+        return min_range_image(points_s, layout, ok) if xp is np else min_range_image_jax(points_s, ok, layout)
+
+    def supported(image):
+        def at(img):
+            return img.reshape(-1)[flat]
+
+        def continues(d1, d2):
+            a1, a2 = at(_neighbour(image, *d1, xp)), at(_neighbour(image, *d2, xp))
+            # three returns in a line (two mixed pixels that happen to lie near each other are not); with the
+            # pixel beyond the neighbour empty, the neighbour's range
+            pred = xp.where(xp.isfinite(a2), 2.0 * a1 - xp.where(xp.isfinite(a2), a2, 0.0), a1)
+            return xp.isfinite(a1) & (xp.abs(rng - pred) <= tol_m)
+
+        def known(d):
+            return xp.isfinite(at(_neighbour(image, *d, xp)))
+
+        ok = (continues((0, -1), (0, -2)) | continues((0, 1), (0, 2))
+              | continues((-1, 0), (-2, 0)) | continues((1, 0), (2, 0)))
+        # a return with no neighbour at all in its row and column says nothing against it (a lone beam hit)
+        has_any = known((0, -1)) | known((0, 1)) | known((-1, 0)) | known((1, 0))
+        return ok | ~has_any | ~inside
+
+    # twice: a mixed pixel that a neighbouring mixed pixel happened to continue loses that support once
+    # the neighbour is gone
+    keep = valid & supported(image_of(valid))
+    return keep & supported(image_of(keep))
+
+
+# -------------------------------------------------------------------------------------------------
+# footprints: the nearest return within a window around each pixel (the free-space evidence's test)
+# -------------------------------------------------------------------------------------------------
+
+FOOTPRINTS = (1, 2, 3, 4, 6, 8, 11, 16, 23, 32)   # window half-widths, in pixels of the coarser axis
+
+
+def footprint_windows(layout: Layout) -> tuple:
+    """((rows, cols) half-widths in pixels, ...) of the footprint levels: level j spans at least
+    FOOTPRINTS[j] * s radians on both axes, s the larger of the row and column steps."""
+    s = max(layout.elev_step, layout.col_step)
+    return tuple((int(math.ceil(k * s / layout.elev_step - 1e-6)), int(math.ceil(k * s / layout.col_step - 1e-6)))
+                 for k in FOOTPRINTS)
+
+
+def _window_min(img, k: int, axis: int, xp):
+    """min over [c - k, c + k] along `axis` (columns wrap; rows are padded by the caller) by a sparse
+    table: two overlapping windows of 2^p cells."""
+    d = (1, 0) if axis == 0 else (0, 1)
+    length = 2 * k + 1
+    table = img
+    p = 0
+    while (2 << p) <= length:
+        table = xp.minimum(table, _neighbour(table, (1 << p) * d[0], (1 << p) * d[1], xp))
+        p += 1
+    a = -k
+    b = k - (1 << p) + 1
+    return xp.minimum(_neighbour(table, a * d[0], a * d[1], xp), _neighbour(table, b * d[0], b * d[1], xp))
+
+
+def min_pool_levels(image, layout: Layout, xp=np):
+    """[len(FOOTPRINTS), rows, cols]: level j holds at each pixel the nearest return within its window
+    (`footprint_windows`). Columns wrap around (a full turn); rows beyond the image count as a return at
+    range 0 (outside the sensor's field of view nothing is seen, so a window reaching there is never free)."""
+    wins = footprint_windows(layout)
+    pad = max(kr for kr, _ in wins) + 1
+    rows = image.shape[0]
+    unseen = xp.zeros((pad, image.shape[1]), image.dtype)
+    padded = xp.concatenate([unseen, image, unseen])
+    out = []
+    for kr, kc in wins:
+        by_rows = _window_min(padded, kr, 0, xp)[pad:pad + rows]
+        out.append(_window_min(by_rows, kc, 1, xp))
+    return xp.stack(out)
+
+
+def level_for(half_angle, layout: Layout, xp=np):
+    """Index into FOOTPRINTS of the smallest window whose every ray lies within `half_angle` radians of a
+    direction, plus half a pixel (where the direction falls in its pixel); len(FOOTPRINTS) when none."""
+    s = max(layout.elev_step, layout.col_step)
+    need = half_angle / s + 0.5
+    radii = xp.asarray(FOOTPRINTS, xp.float32)
+    return xp.sum(need[..., None] > radii, axis=-1).astype(xp.int32)

@@ -1,0 +1,174 @@
+"""The scan's range image (`jaxmap.range_image`): the layout read off a raw scan, the nearest return per
+pixel, its footprint windows, and the veil filter that drops mixed pixels and isolated returns."""
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmap import range_image as ri
+from jaxmap.synth.city import beam_directions
+
+BEAMS, STEPS = 32, 512
+
+
+def _scan(t_of_dirs, beams=BEAMS, steps=STEPS):
+    """Points [N, 3] of a LiDAR at the origin whose ray d travels t_of_dirs(d) (inf: no return)."""
+    d = beam_directions(beams, steps)
+    t = t_of_dirs(d)
+    ok = np.isfinite(t)
+    return (d[ok] * t[ok, None]).astype(np.float32), d, t
+
+
+def _two_walls(d, near_x=6.0, near_y=(-1.0, 1.0), far_x=12.0):
+    """A wall x = far_x behind a narrower wall x = near_x spanning near_y (both 10 m tall), and the ground
+    1.7 m below the sensor."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(d[:, 2] < -1e-6, -1.7 / d[:, 2], np.inf)
+        tf = np.where(d[:, 0] > 1e-6, far_x / d[:, 0], np.inf)
+        tn = np.where(d[:, 0] > 1e-6, near_x / d[:, 0], np.inf)
+        yn = tn * d[:, 1]
+        tn = np.where((yn >= near_y[0]) & (yn <= near_y[1]), tn, np.inf)
+    return np.minimum(t, np.minimum(tf, tn))
+
+
+def test_layout_is_read_off_the_beams_and_azimuth_steps():
+    """A 32 x 512 LiDAR (beams from -25 to +2 degrees) gives 32 rows of its beam spacing and 512 columns,
+    every return lands in its own beam's row and azimuth step's column, and one pixel holds one return."""
+    pts, d, t = _scan(_two_walls)
+    lay = ri.estimate_layout(pts)
+    assert (lay.rows, lay.cols) == (BEAMS, STEPS)
+    assert math.isclose(math.degrees(lay.elev_step), 27.0 / (BEAMS - 1), rel_tol=1e-3)
+    row, col, rng, inside = ri.pixels(pts, lay)
+    ok = np.isfinite(t)
+    beam = np.repeat(np.arange(BEAMS), STEPS)[ok]
+    step = np.tile(np.arange(STEPS), BEAMS)[ok]
+    assert inside.all() and np.array_equal(row, beam)
+    # columns are the azimuth steps up to a fixed rotation (column 0 starts at -pi)
+    assert len(np.unique((col - step) % STEPS)) == 1
+    img = ri.min_range_image(pts, lay)
+    assert np.isfinite(img).sum() == len(pts)
+    np.testing.assert_allclose(img[row, col], rng, rtol=1e-6)
+    # the same on the device
+    img_j = ri.min_range_image_jax(jnp.asarray(pts), jnp.ones(len(pts), bool), lay)
+    np.testing.assert_array_equal(np.asarray(img_j), img)
+
+
+def test_layout_of_a_sensor_without_beams_is_a_uniform_grid_at_its_sampling():
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(40000, 3))
+    u[:, 2] = np.abs(u[:, 2]) * 0.3
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    lay = ri.estimate_layout(u * 10.0)
+    assert lay.rows > 20 and 64 <= lay.cols <= ri.MAX_COLS
+    with pytest.raises(ValueError, match="too small"):
+        ri.estimate_layout(u[:50] * 10.0)
+
+
+def test_min_pool_levels_are_the_nearest_return_within_their_window():
+    """Every footprint level against a brute-force window minimum: columns wrap, rows beyond the image
+    count as unseen (range 0), so a window reaching past the field of view is never free."""
+    rng = np.random.default_rng(1)
+    lay = ri.Layout(rows=12, cols=40, elev0=-0.2, elev_step=0.02, az0=-math.pi)   # rows 0.02, cols 0.157 rad
+    img = rng.uniform(1, 50, (12, 40)).astype(np.float32)
+    img[rng.random(img.shape) < 0.2] = np.inf
+    lv = np.asarray(jax.jit(lambda x: ri.min_pool_levels(x, lay, jnp))(img))
+    wins = ri.footprint_windows(lay)
+    assert wins[0] == (8, 1) and len(lv) == len(ri.FOOTPRINTS)
+    for j, (kr, kc) in enumerate(wins[:5]):
+        ref = np.full_like(img, np.inf)
+        for dr in range(-kr, kr + 1):
+            for dc in range(-kc, kc + 1):
+                sh = np.roll(img, -dc, axis=1)
+                r = np.arange(12) + dr
+                inside = (r >= 0) & (r < 12)
+                sh = np.where(inside[:, None], sh[np.where(inside, r, 0)], 0.0)
+                ref = np.minimum(ref, sh)
+        np.testing.assert_array_equal(lv[j], ref, err_msg=f"level {kr} x {kc}")
+    np.testing.assert_array_equal(ri.min_pool_levels(img, lay)[3], lv[3])  # numpy and jax agree
+    # the level a half-angle needs: its window covers it plus half a pixel on both axes
+    half = np.array([0.0, 0.1, 0.3, 1.0], np.float32)
+    j = ri.level_for(half, lay)
+    s = max(lay.elev_step, lay.col_step)
+    for h, jj in zip(half, j):
+        assert ri.FOOTPRINTS[jj] * s >= h + 0.5 * s and (jj == 0 or ri.FOOTPRINTS[jj - 1] * s < h + 0.5 * s)
+
+
+def _mixed(pts_d_t, p=1.0, seed=0, jump=0.3):
+    """The scan with the synthetic city's mixed pixels: a return whose azimuth neighbour (same beam) lies
+    more than `jump` away gets a range uniform between the two, with probability p. Returns (points,
+    is_mixed [N] bool, gap [N]: the mixed return's distance to the nearer of the two surfaces)."""
+    _, d, t = pts_d_t
+    G = t.reshape(BEAMS, STEPS).copy()
+    ok = np.isfinite(G)
+    rng = np.random.default_rng(seed)
+    best, other = np.zeros(G.shape), G.copy()
+    for shift in (1, -1):
+        Gn, okn = np.roll(G, shift, axis=1), np.roll(ok, shift, axis=1)
+        diff = np.where(ok & okn, np.abs(np.where(okn, Gn, 0) - np.where(ok, G, 0)), 0.0)
+        take = diff > best
+        best, other = np.where(take, diff, best), np.where(take, Gn, other)
+    mix = (best > jump) & (rng.random(G.shape) < p)
+    lo, hi = np.minimum(G, other), np.maximum(G, other)
+    w = rng.uniform(0.0, 1.0, G.shape)
+    with np.errstate(invalid="ignore"):
+        G = np.where(mix, lo + w * (hi - lo), G)
+        gap = np.where(mix, np.minimum(G - lo, hi - G), 0.0)
+    t2 = G.reshape(-1)
+    keep = np.isfinite(t2)
+    return (d[keep] * t2[keep, None]).astype(np.float32), mix.reshape(-1)[keep], gap.reshape(-1)[keep]
+
+
+def test_veil_filter_drops_mixed_pixels_between_two_walls_and_keeps_the_walls():
+    """Mixed pixels at both edges of a near wall in front of a far one (and where its foot meets the ground):
+    the veil test drops >= 95 % of those farther than 0.5 m from both surfaces (nearer ones, on a grazing
+    surface where neighbouring returns differ by more than 0.3 m, lie on that surface), and
+    keeps >= 99.5 % of the true returns of both walls and the ground. Dropping every return that differs from a neighbour by more
+    than 0.3 m (a plain jump test) would drop the near wall's edges and the far wall beside them: it fails
+    the second bound."""
+    clean = _scan(_two_walls)
+    pts, is_mixed, gap = _mixed(clean)
+    lay = ri.estimate_layout(clean[0])
+    keep = ri.veil_keep(pts, lay, tol_m=0.15)
+    veil = is_mixed & (gap > 0.5)
+    assert veil.sum() > 50
+    assert keep[veil].mean() <= 0.05, keep[veil].mean()
+    assert keep[~is_mixed].mean() >= 0.995, keep[~is_mixed].mean()
+    # the plain jump test the bound rules out
+    img = ri.min_range_image(pts, lay)
+    row, col, rng, _ = ri.pixels(pts, lay)
+    jumpy = np.zeros(len(pts), bool)
+    for dc in (-1, 1):
+        nb = np.roll(img, -dc, axis=1)[row, col]
+        jumpy |= np.isfinite(nb) & (np.abs(nb - rng) > 0.3)
+    assert (~jumpy)[~is_mixed].mean() < 0.995
+    # the device's filter is the host's
+    keep_j = jax.jit(lambda p: ri.veil_keep(p, lay, 0.15, valid=jnp.ones(p.shape[0], bool), xp=jnp))(pts)
+    np.testing.assert_array_equal(np.asarray(keep_j), keep)
+
+
+def test_veil_filter_keeps_grazing_surfaces_and_drops_isolated_returns():
+    """A wall along the drive seen at grazing incidence (ranges rising steadily along each beam) and 2 cm
+    range noise: >= 99.5 % kept. Returns moved to random ranges (the synthetic LiDAR's outliers) are
+    dropped (>= 90 %)."""
+    def corridor(d):
+        with np.errstate(divide="ignore"):
+            t = np.where(d[:, 2] < -1e-6, -1.7 / d[:, 2], np.inf)
+            t = np.minimum(t, np.where(np.abs(d[:, 1]) > 1e-6, 3.0 / np.abs(d[:, 1]), np.inf))
+        return np.where(t < 40.0, t, np.inf)
+
+    pts, d, t = _scan(corridor)
+    rng = np.random.default_rng(3)
+    r = np.linalg.norm(pts, axis=1)
+    noisy = pts * ((r + rng.normal(0, 0.02, len(r))) / r)[:, None]
+    lay = ri.estimate_layout(pts)
+    assert ri.veil_keep(noisy.astype(np.float32), lay, 0.15).mean() >= 0.995
+    out = rng.random(len(pts)) < 0.01
+    far = noisy.copy()
+    far[out] = (pts[out] / r[out, None] * rng.uniform(0.5, 40.0, (out.sum(), 1))).astype(np.float32)
+    # (a random range within the tolerance of the true one is no outlier)
+    real = out & (np.abs(np.linalg.norm(far, axis=1) - r) > 0.5)
+    keep = ri.veil_keep(far.astype(np.float32), lay, 0.15)
+    assert keep[real].mean() <= 0.1, keep[real].mean()
+    assert keep[~out].mean() >= 0.99
