@@ -23,7 +23,8 @@ from jax import lax
 
 from jaxmap.grid.compaction import nonzero_fixed
 from jaxmap.grid.features import CORNER_OFFSETS
-from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span
+from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span, layout_of, window_offsets
+from jaxmap.range_image import pixels
 
 INT_MAX = jnp.iinfo(jnp.int32).max
 DEVICE_NORMALS = "cube_knn"  # what `normals: knn` (the host's k-d tree) becomes on the device
@@ -268,6 +269,47 @@ def preprocess_scan(points, valid, cfg, rows: int):
     ok = idx < n
     pts = jnp.where(ok[:, None], points[jnp.minimum(idx, n - 1)], 0.0)
     # Normals of the packed rows only: a scan keeps ~3/4 of its points, and this is most of the cost.
-    normals, _ = grid_normals(pts, ok, cell=cfg.normal_cell_m, levels=cfg.normal_levels, k=cfg.normal_knn,
-                              max_range=cfg.max_range_m, knn_cap=CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0)
+    if cfg.normals == "range_image":
+        normals, _ = range_image_normals(pts, ok, points, valid, layout_of(cfg), cfg.normal_knn)
+    else:
+        normals, _ = grid_normals(pts, ok, cell=cfg.normal_cell_m, levels=cfg.normal_levels, k=cfg.normal_knn,
+                                  max_range=cfg.max_range_m, knn_cap=CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0)
     return pts, normals, ok, jnp.sum(keep, dtype=jnp.int32)
+
+
+def range_image_normals(points, valid, raw, raw_valid, layout, k: int):
+    """PCA normals from the scan's own range-image neighbours (`jaxmap.preprocess.range_image_normals`,
+    its float64 reference, says how): static shapes throughout, the window a fixed set of pixels, the k
+    nearest of its returns by `lax.top_k`. points [M, 3] float32 sensor frame, valid [M]; raw [N, 3],
+    raw_valid [N]: the raw scan (the range image's returns); layout: its `range_image.Layout` ->
+    (normals [M, 3] unit float32, neighbours [M] float32; 0 for invalid rows)."""
+    hw = layout.rows * layout.cols
+    row, col, rng, inside = pixels(raw, layout, jnp)
+    ok = raw_valid & inside & jnp.isfinite(rng) & (rng > 0)
+    flat = jnp.where(ok, row * layout.cols + col, hw)
+    nearest = jnp.full((hw + 1,), jnp.inf, jnp.float32).at[flat].min(rng)
+    is_nearest = ok & (rng == nearest[flat])
+    xyz = jnp.full((hw, 3), jnp.nan, jnp.float32).at[jnp.where(is_nearest, flat, hw)].set(raw, mode="drop")
+    prow, pcol, _, _ = pixels(points, layout, jnp)
+    off = jnp.asarray(window_offsets())
+    rr, cc = prow[:, None] + off[:, 0], (pcol[:, None] + off[:, 1]) % layout.cols
+    in_image = (rr >= 0) & (rr < layout.rows)
+    rel = xyz[jnp.clip(rr, 0, layout.rows - 1) * layout.cols + cc] - points[:, None, :]   # [M, K, 3] relative
+    good = in_image & jnp.isfinite(rel[..., 0])
+    rel = jnp.where(good[..., None], rel, 0.0)
+    d2 = jnp.where(good, jnp.sum(rel * rel, -1), jnp.inf)
+    neg, nb = lax.top_k(-d2, k)
+    use = jnp.isfinite(neg) & valid[:, None]
+    x = jnp.take_along_axis(rel, nb[:, :, None], axis=1)
+    m = use.astype(jnp.float32)
+    cnt = jnp.sum(m, 1)
+    mean = jnp.sum(x * m[:, :, None], 1) / jnp.maximum(cnt, 1.0)[:, None]
+    c = (x - mean[:, None, :]) * m[:, :, None]
+    cov = jnp.einsum("nki,nkj->nij", c, c, precision=lax.Precision.HIGHEST) / jnp.maximum(cnt, 1.0)[:, None, None]
+    normals = smallest_eigenvector(cov)
+    flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
+    normals = jnp.where(flip[:, None], -normals, normals)
+    view = -points / jnp.maximum(jnp.linalg.norm(points, axis=1, keepdims=True), 1e-9)
+    normals = jnp.where((cnt < MIN_PLANE_POINTS)[:, None], view, normals)
+    normals = jnp.where(valid[:, None], normals, np.array([0.0, 0.0, 1.0], np.float32))
+    return normals, jnp.where(valid, cnt, 0.0)

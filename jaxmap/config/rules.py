@@ -118,7 +118,7 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
         yield (f"{x}device", f"{x}outlier_mad"), (
             f"{x}device=true cannot remove outliers ({x}outlier_mad={p.outlier_mad!r} runs on the host); "
             f"set {x}device=false or {x}outlier_mad=0")
-    if p.normals != "knn":
+    if p.normals in ("grid", "cube_knn"):
         yield from _grid_checks(p, x)
     if p.image_rows > 0 and not (p.image_cols > 0 and p.image_elev_step_deg > 0):
         yield (f"{x}image_rows", f"{x}image_cols", f"{x}image_elev_step_deg"), (
@@ -140,7 +140,7 @@ RULES: dict[type, dict[str, Rule]] = {
     DataConfig: {"kind": one_of(*DATA_KINDS), "begin_frame": at_least(0), "every_frame": at_least(1),
                  "path": NONEMPTY},
     PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3),
-                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid", "cube_knn"),
+                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid", "cube_knn", "range_image"),
                        "device": one_of("auto", "true", "false"),
                        "normal_cell_m": above(0.0), "normal_levels": at_least(1), "veil_m": at_least(0.0),
                        "image_rows": at_least(0), "image_cols": at_least(0), "image_elev_step_deg": at_least(0.0)},

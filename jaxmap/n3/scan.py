@@ -55,9 +55,10 @@ def preprocess(points_s, pose, cfg_preprocess, frame: int, image: bool = False):
 
 
 def needs_layout(cfg) -> bool:
-    """Whether a MapConfig still has to read its range-image layout off a scan (veil filter or free-space
-    evidence on, `preprocess.image_rows` 0)."""
-    return (cfg.evidence.enabled or cfg.preprocess.veil_m > 0) and cfg.preprocess.image_rows == 0
+    """Whether a MapConfig still has to read its range-image layout off a scan (veil filter, free-space
+    evidence or range-image normals on, `preprocess.image_rows` 0)."""
+    p = cfg.preprocess
+    return (cfg.evidence.enabled or p.veil_m > 0 or p.normals == "range_image") and p.image_rows == 0
 
 
 def resolve_layout(cfg, points_s, frame: int = 0):
