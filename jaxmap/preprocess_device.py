@@ -180,6 +180,12 @@ def _knn_in_cube(points, valid, k: int, cap: int, level, cells, orders, starts, 
     cand = jnp.transpose(cand, (1, 0, 2)).reshape(n, 8 * cap)
     ok = jnp.transpose(ok, (1, 0, 2)).reshape(n, 8 * cap)
     rel = points[cand] - points[:, None, :]                                      # relative: float32 stays exact
+    return _nearest_covariance(rel, ok, valid, k)
+
+
+def _nearest_covariance(rel, ok, valid, k: int):
+    """Count [N] and covariance [N, 3, 3] of the k nearest of each point's candidates: rel [N, C, 3]
+    relative to the point, ok [N, C] the real ones, valid [N]."""
     d2 = jnp.where(ok, jnp.sum(rel * rel, -1), jnp.inf)
     neg, nb = lax.top_k(-d2, k)                                                  # [N, k]
     use = jnp.isfinite(neg) & valid[:, None]
@@ -190,6 +196,18 @@ def _knn_in_cube(points, valid, k: int, cap: int, level, cells, orders, starts, 
     c = (x - mean[:, None, :]) * m[:, :, None]
     cov = jnp.einsum("nki,nkj->nij", c, c, precision=lax.Precision.HIGHEST) / jnp.maximum(cnt, 1.0)[:, None, None]
     return cnt, cov
+
+
+def _plane_normals(cov, cnt, points, valid):
+    """The planes' normals [N, 3] of covariances [N, 3, 3] of `cnt` [N] points around points [N, 3]
+    (sensor frame), facing the sensor; the direction to the sensor where fewer than 3 points span no
+    plane (the only honest guess), +z on invalid rows."""
+    normals = smallest_eigenvector(cov)
+    flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
+    normals = jnp.where(flip[:, None], -normals, normals)
+    view = -points / jnp.maximum(jnp.linalg.norm(points, axis=1, keepdims=True), 1e-9)
+    normals = jnp.where((cnt < MIN_PLANE_POINTS)[:, None], view, normals)
+    return jnp.where(valid[:, None], normals, np.array([0.0, 0.0, 1.0], np.float32))
 
 
 def smallest_eigenvector(cov):
@@ -245,14 +263,7 @@ def grid_normals(points, valid, *, cell: float, levels: int, k: int, max_range: 
     if knn_cap > 0:
         cells, orders, starts, counts = (jnp.stack(a) for a in zip(*per_level))
         chosen_n, chosen_cov = _knn_in_cube(points, valid, k, knn_cap, level, cells, orders, starts, counts)
-    normals = smallest_eigenvector(chosen_cov)
-    flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
-    normals = jnp.where(flip[:, None], -normals, normals)
-    # Fewer than 3 points span no plane: the direction to the sensor is the only honest guess.
-    view = -points / jnp.maximum(jnp.linalg.norm(points, axis=1, keepdims=True), 1e-9)
-    normals = jnp.where((chosen_n < MIN_PLANE_POINTS)[:, None], view, normals)
-    normals = jnp.where(valid[:, None], normals, np.array([0.0, 0.0, 1.0], np.float32))
-    return normals, jnp.where(valid, chosen_n, 0.0)
+    return _plane_normals(chosen_cov, chosen_n, points, valid), jnp.where(valid, chosen_n, 0.0)
 
 
 def preprocess_scan(points, valid, cfg, rows: int):
@@ -296,20 +307,5 @@ def range_image_normals(points, valid, raw, raw_valid, layout, k: int):
     in_image = (rr >= 0) & (rr < layout.rows)
     rel = xyz[jnp.clip(rr, 0, layout.rows - 1) * layout.cols + cc] - points[:, None, :]   # [M, K, 3] relative
     good = in_image & jnp.isfinite(rel[..., 0])
-    rel = jnp.where(good[..., None], rel, 0.0)
-    d2 = jnp.where(good, jnp.sum(rel * rel, -1), jnp.inf)
-    neg, nb = lax.top_k(-d2, k)
-    use = jnp.isfinite(neg) & valid[:, None]
-    x = jnp.take_along_axis(rel, nb[:, :, None], axis=1)
-    m = use.astype(jnp.float32)
-    cnt = jnp.sum(m, 1)
-    mean = jnp.sum(x * m[:, :, None], 1) / jnp.maximum(cnt, 1.0)[:, None]
-    c = (x - mean[:, None, :]) * m[:, :, None]
-    cov = jnp.einsum("nki,nkj->nij", c, c, precision=lax.Precision.HIGHEST) / jnp.maximum(cnt, 1.0)[:, None, None]
-    normals = smallest_eigenvector(cov)
-    flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
-    normals = jnp.where(flip[:, None], -normals, normals)
-    view = -points / jnp.maximum(jnp.linalg.norm(points, axis=1, keepdims=True), 1e-9)
-    normals = jnp.where((cnt < MIN_PLANE_POINTS)[:, None], view, normals)
-    normals = jnp.where(valid[:, None], normals, np.array([0.0, 0.0, 1.0], np.float32))
-    return normals, jnp.where(valid, cnt, 0.0)
+    cnt, cov = _nearest_covariance(jnp.where(good[..., None], rel, 0.0), good, valid, k)
+    return _plane_normals(cov, cnt, points, valid), jnp.where(valid, cnt, 0.0)
