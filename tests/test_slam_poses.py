@@ -107,10 +107,10 @@ def test_a_failure_mid_run_saves_the_map_and_names_the_frame(small_room, tmp_pat
 
     real = frontend.FrontEnd.add_frame
 
-    def failing(self, points_s):
+    def failing(self, points_s, **kw):
         if len(self.frame_ref) == 3:
             raise RuntimeError("simulated ICP crash")
-        return real(self, points_s)
+        return real(self, points_s, **kw)
 
     monkeypatch.setattr(frontend.FrontEnd, "add_frame", failing)
     cfg = SlamConfig(data=DataConfig(path=str(small_room), every_frame=1), mesh_at_loops=False,

@@ -84,10 +84,11 @@ def _print_head(head: str) -> None:
 def print_speed(rows: dict) -> None:
     """The speed table; `outside ms` / `%`: the wall-clock outside the frame programs and compilation, in
     ms a frame and % of the wall (reading and waiting for scans, dispatching, stats, checkpoints)."""
-    _print_head(f"{'run':<6}{'frames':>7}{'wall s':>8}{'s/frame':>8}{'median':>8}{'p95':>7}{'worst/med':>10}"
+    w = max([6] + [len(name) + 1 for name in rows])
+    _print_head(f"{'run':<{w}}{'frames':>7}{'wall s':>8}{'s/frame':>8}{'median':>8}{'p95':>7}{'worst/med':>10}"
                 f"{'>2x med':>8}{'compile s':>10}{'#':>3}{'outside ms':>11}{'%':>5}{'RSS map MB':>11}{'RSS all MB':>11}")
     for name, r in rows.items():
-        print(f"{name:<6}{r['frames']:>7d}{r['wall_s']:>8.1f}{r['s_per_frame']:>8.3f}{r['median_s']:>8.3f}{r['p95_s']:>7.3f}"
+        print(f"{name:<{w}}{r['frames']:>7d}{r['wall_s']:>8.1f}{r['s_per_frame']:>8.3f}{r['median_s']:>8.3f}{r['p95_s']:>7.3f}"
               f"{r['worst_after_10_over_median']:>10.2f}{r['frames_over_2x_median_after_10']:>8d}{r['compile_s']:>10.1f}"
               f"{r['compiles']:>3d}{r['outside_ms_per_frame']:>11.1f}{r['outside_pct']:>5.1f}"
               f"{r['peak_rss_mapping_mb']:>11.0f}{r['peak_rss_mb']:>11.0f}")
