@@ -187,15 +187,18 @@ def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> 
 _PENDING: list = []  # the one background save in flight: [thread, error or None]
 
 
+# A copy of the whole state on the device, one program (leaf by leaf, the copies compiled one small
+# program per shape the first time: 3 s of the main thread at the first checkpoint of a city run).
+_snapshot = jax.jit(lambda state: jax.tree_util.tree_map(jnp.copy, state))
+
+
 def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, copy: bool = True) -> None:
     """Like `save_state`, but written in a background thread from a copy of the state made on the device
-    (`copy_arrays`: asynchronous, in order before the next frame program, which donates the state's
+    (`_snapshot`: asynchronous, in order before the next frame program, which donates the state's
     buffers), so the caller goes on at once; copy=False: from `state` itself, which nothing may change
     until it is written. Call `wait_for_saves()` before relying on the files."""
-    from jaxmap.viewer import copy_arrays
-
     wait_for_saves()
-    snapshot, timings = copy_arrays(state) if copy else state, list(timings)
+    snapshot, timings = _snapshot(state) if copy else state, list(timings)
     slot = [None, None]
 
     def work():
