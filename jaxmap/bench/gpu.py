@@ -8,9 +8,9 @@
      cache) and warm (the cache the cold run filled), each run its own `jaxmap map --no-mesh` process
      (`jaxmap.bench.n3.map_in_subprocess`): wall s/frame, the frame program's median and p95, compile
      seconds, the time outside the frame programs (ms a frame, % of the wall), peak RSS;
-  3. `jaxmap slam configs/city_slam.yaml` on the same city: wall s/frame, its steps' medians;
-  4. `jaxmap imt configs/room_imt.yaml` on the synthetic room (`jaxmap synth room`, made once beside the
-     city): wall s/frame, the preprocessing and the encode program's medians.
+  3. `jaxmap imt configs/room_imt.yaml` on the synthetic room (`jaxmap synth room`, made once beside the
+     city): wall s/frame, the preprocessing and the encode program's medians;
+  4. `jaxmap slam configs/city_slam.yaml` on the city: wall s/frame, its steps' medians.
 Each part is written as soon as it is done to OUT/gpu.json (and the tables to OUT/gpu.txt), so a run
 cut short keeps what it measured. --quick: the small city and room, a few frames each (a check, on a
 CPU, that the whole script runs).
@@ -123,7 +123,7 @@ def tables(res: dict) -> str:
             lines.append(f"{k}: wall {r['s_per_frame']:.3f} s/frame = {r['s_per_frame'] / r['median_s']:.2f}x the "
                          f"frame program's median {r['median_s']:.4f} s; without compiling {steady:.3f} s/frame "
                          f"({steady / r['median_s']:.2f}x)")
-    for name in ("slam", "imt"):
+    for name in ("imt", "slam"):
         r = res.get(name)
         if not r:
             continue
@@ -165,8 +165,8 @@ def main(args) -> int:
             make()
             res.setdefault("synth_s", {})[path] = time.perf_counter() - t
     save()
-    for name, run in (("n3", lambda: n3_speed(city, out, quick)), ("slam", lambda: slam_speed(city, out, quick)),
-                      ("imt", lambda: imt_speed(room, out, quick))):
+    for name, run in (("n3", lambda: n3_speed(city, out, quick)), ("imt", lambda: imt_speed(room, out, quick)),
+                      ("slam", lambda: slam_speed(city, out, quick))):
         if name in only:
             print(f"[bench gpu] {name} ({time.perf_counter() - t0:.0f} s in)", flush=True)
             res[name] = run()
