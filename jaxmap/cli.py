@@ -176,10 +176,10 @@ def _view_args(sub) -> None:
 
 def _bench_args(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
-    p.add_argument("suite", choices=["n3", "imt", "slam"])
+    p.add_argument("suite", choices=["n3", "imt", "slam", "gpu"])
     p.add_argument("--data", default=None,
                    help="where the benchmark scene is, made if missing "
-                        "(n3: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
+                        "(n3 and gpu: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
     p.add_argument("--out", default=None, help="output directory (default runs/bench_SUITE)")
     p.add_argument("--frames", type=int, default=None)
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
@@ -191,6 +191,8 @@ def _bench_args(sub) -> None:
     p.add_argument("--cities", default=None,
                    help="n3 --suite: comma-separated subset of the suite's cities (the variant's other rows in "
                         "OUT/suite.json are kept)")
+    p.add_argument("--quick", action="store_true",
+                   help="gpu: the small city and room, a few frames each (checks that the whole bench runs)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
 
 

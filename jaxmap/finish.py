@@ -10,8 +10,9 @@ import json
 import logging
 import os
 import time
+from typing import Callable
 
-from jaxmap.frame_loop import LoopResult, Mapper, close_viewer
+from jaxmap.frame_loop import LoopResult, Mapper, close_viewer, outside_programs
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import evaluate_mesh_file
 
@@ -19,23 +20,34 @@ log = logging.getLogger("jaxmap")
 
 
 def finish_run(mapper: Mapper, cfg, out_dir: str, loop: LoopResult | None = None, *, evaluate: bool = True,
-               mesh: bool = True, extra: dict | None = None, viewer=None, point_scores: dict | None = None) -> dict:
+               mesh: bool = True, extra: dict | None = None, viewer=None, point_scores: dict | None = None,
+               wait_saves: Callable[[], None] | None = None) -> dict:
     """Mesh (`out_dir/mesh.ply`), metrics against the sequence's ground truth (`metrics.json`, when it
     has gt_points.ply) and timings (`timing.json`) of a mapped run; returns the run's summary.
     mesh=False: timings only. The viewer, if any, shows the final mesh and is closed. point_scores: the
     run's `jaxmap.metrics.dynamic.PointScores.result()` (sequences with moving objects), written to
-    metrics.json and the summary as "dynamic_points"."""
+    metrics.json and the summary as "dynamic_points". wait_saves: waits for the final checkpoint, written
+    in the background while the map is meshed (`Checkpoints.final`); what is left of it once the mesh is
+    done counts in the run's wall_s and final_save_s."""
     out = (mesh_and_metrics(mapper, cfg, out_dir, evaluate=evaluate) if mesh
            else {"mesh": None, "faces": 0, "mesh_s": 0.0})
     if point_scores is not None:
         out["dynamic_points"] = point_scores
         if "metrics" in out:
             out["metrics"]["dynamic_points"] = point_scores
+    t0 = time.perf_counter()
+    if wait_saves is not None:
+        wait_saves()
+    waited = time.perf_counter() - t0
     summ = dict(mapper.timing_summary())
-    if loop is not None and loop.frames_run:
-        summ.update({"wall_s": loop.wall_s, "wall_s_per_frame": loop.wall_s / loop.frames_run,
-                     "frames_run": loop.frames_run})
+    ran = loop is not None and loop.frames_run
+    if ran:
+        wall = loop.wall_s + waited
+        summ.update({"wall_s": wall, "wall_s_per_frame": wall / loop.frames_run, "frames_run": loop.frames_run,
+                     "final_save_s": loop.final_save_s + waited})
     summ.update(extra or {})
+    if ran:
+        summ.update(outside_programs(mapper.timings[-loop.frames_run:], wall, summ.get("compile_s", 0.0)))
     with open(os.path.join(out_dir, "timing.json"), "w") as f:
         json.dump({"frames": mapper.timings, "summary": summ, "mesh_s": out["mesh_s"]}, f)
     if "metrics" in out:

@@ -17,6 +17,11 @@ Both are frozen dataclasses registered as pytrees (one leaf, `matrix`), so they 
 `jax.vmap` and `jax.lax.scan` like arrays. Points and vectors are rows (`[..., N, 3]`, one cloud per
 pose); for one point per pose pass `points[..., None, :]`.
 
+The one precision rule: every product of poses and points on jax arrays is `matmul` / `einsum` below,
+at `Precision.HIGHEST`. A GPU's float32 matrix product otherwise rounds its operands to TF32 (10
+mantissa bits, ~5e-4 relative): 1-2.5 cm at 50 m (`tests/test_geometry.py` shows it on the CPU by
+emulating those units). On a CPU HIGHEST is what XLA always does: results are the same bits.
+
 The functions below (transform_points, se3_inverse, ...) are the same operations on raw matrices; their
 `xnp` argument (numpy or jax.numpy) converts the inputs to that module's arrays first (None: keep them).
 """
@@ -34,6 +39,20 @@ from jaxmap.errors import DataError
 
 class PoseError(DataError):
     """A pose matrix is not a rigid transform."""
+
+
+def matmul(a, b):
+    """`a @ b`; for jax arrays at full float32 precision on every backend (the module's precision rule)."""
+    if array_module(a, b) is np:
+        return a @ b
+    return jnp.matmul(a, b, precision=jax.lax.Precision.HIGHEST)
+
+
+def einsum(spec: str, *operands):
+    """`einsum(spec, *operands)`; for jax arrays at full float32 precision (the module's precision rule)."""
+    if array_module(*operands) is np:
+        return np.einsum(spec, *operands)
+    return jnp.einsum(spec, *operands, precision=jax.lax.Precision.HIGHEST)
 
 
 def array_module(*arrays):
@@ -55,10 +74,10 @@ def _nearest_rotation(R):
     """R [..., 3, 3] projected onto SO(3) by SVD (`U V^T`, det fixed to +1), same dtype."""
     xnp = array_module(R)
     U, _, Vt = xnp.linalg.svd(R)
-    d = xnp.sign(xnp.linalg.det(U @ Vt))
+    d = xnp.sign(xnp.linalg.det(matmul(U, Vt)))
     d = xnp.where(d == 0, 1.0, d)
     Vt = xnp.concatenate([Vt[..., :2, :], Vt[..., 2:, :] * d[..., None, None]], axis=-2)
-    return (U @ Vt).astype(R.dtype)
+    return matmul(U, Vt).astype(R.dtype)
 
 
 class _Batched:
@@ -127,7 +146,7 @@ class SO3(_Batched):
         axis = axis / xnp.linalg.norm(axis)
         x, y, z = axis[0], axis[1], axis[2]
         K = xnp.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-        return SO3(xnp.eye(3) + xnp.sin(angle) * K + (1.0 - xnp.cos(angle)) * (K @ K))
+        return SO3(xnp.eye(3) + xnp.sin(angle) * K + (1.0 - xnp.cos(angle)) * matmul(K, K))
 
     @staticmethod
     def from_z_radians(yaw) -> SO3:
@@ -143,11 +162,11 @@ class SO3(_Batched):
     def __matmul__(self, other: SO3) -> SO3:
         if not isinstance(other, SO3):
             raise TypeError(f"SO3 @ {type(other).__name__}: compose with an SO3; rotate vectors with .apply")
-        return SO3(self.matrix @ other.matrix)
+        return SO3(matmul(self.matrix, other.matrix))
 
     def apply(self, vectors):
         """Rotate row vectors: [..., N, 3] (or [3]) -> the same shape, `v R^T`."""
-        return vectors @ array_module(self.matrix, vectors).swapaxes(self.matrix, -1, -2)
+        return matmul(vectors, array_module(self.matrix, vectors).swapaxes(self.matrix, -1, -2))
 
     def angle(self):
         """Geodesic angle (radians) [...] of each rotation."""
@@ -198,19 +217,19 @@ class SE3(_Batched):
         """`[[R^T, -R^T t], [0, 1]]`, without a general matrix inverse."""
         xnp = array_module(self.matrix)
         Rt = xnp.swapaxes(self.matrix[..., :3, :3], -1, -2)
-        ti = -(Rt @ self.matrix[..., :3, 3][..., None])[..., 0]
+        ti = -matmul(Rt, self.matrix[..., :3, 3][..., None])[..., 0]
         top = xnp.concatenate([Rt, ti[..., None]], axis=-1)
         return SE3(xnp.concatenate([top, _bottom_row(top.shape, self.matrix.dtype, xnp)], axis=-2))
 
     def __matmul__(self, other: SE3) -> SE3:
         if not isinstance(other, SE3):
             raise TypeError(f"SE3 @ {type(other).__name__}: compose with an SE3; move points with .apply")
-        return SE3(self.matrix @ other.matrix)
+        return SE3(matmul(self.matrix, other.matrix))
 
     def apply(self, points):
         """Move row points: [..., N, 3] -> [..., N, 3], `p R^T + t` (the batch axes broadcast)."""
         R = self.matrix[..., :3, :3]
-        return points @ array_module(R, points).swapaxes(R, -1, -2) + self.matrix[..., None, :3, 3]
+        return matmul(points, array_module(R, points).swapaxes(R, -1, -2)) + self.matrix[..., None, :3, 3]
 
     def orthonormalize(self) -> SE3:
         """The nearest rigid transform, same dtype: see `orthonormalize`."""

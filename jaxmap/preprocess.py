@@ -200,12 +200,78 @@ def _cube_sums(points_s: np.ndarray, p: np.ndarray, c: float, knn_cap: int):
     return tot_n, tot_1, tot_2, level_cand
 
 
-def normals_of(points_s: np.ndarray, cfg) -> np.ndarray:
-    """Normals [M,3] float32 of sensor-frame points [M,3] by `cfg.normals` (a PreprocessConfig)."""
+def normals_of(points_s: np.ndarray, cfg, raw_s: np.ndarray | None = None) -> np.ndarray:
+    """Normals [M,3] float32 of sensor-frame points [M,3] by `cfg.normals` (a PreprocessConfig); raw_s
+    [N, 3]: the raw scan they were taken from (range_image normals: its range image)."""
     if cfg.normals in ("grid", "cube_knn"):
         cap = CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0
         return grid_normals(points_s, cfg.normal_cell_m, cfg.normal_levels, cfg.normal_knn, cap)[0]
+    if cfg.normals == "range_image":
+        return range_image_normals(points_s, points_s if raw_s is None else raw_s, layout_of(cfg, raw_s),
+                                   cfg.normal_knn)[0]
     return estimate_normals(points_s, cfg.normal_knn)[0]
+
+
+RANGE_WINDOW = (2, 4)  # range_image normals: a point's window of pixels, half-sizes (rows, columns)
+
+
+def window_offsets() -> np.ndarray:
+    """[K, 2] (row, column) offsets of the pixels of a point's window (`RANGE_WINDOW`), its own first."""
+    hr, hc = RANGE_WINDOW
+    off = [(dr, dc) for dr in range(-hr, hr + 1) for dc in range(-hc, hc + 1)]
+    off.sort(key=lambda o: (o != (0, 0)))
+    return np.array(off, np.int32)
+
+
+def nearest_return_image(raw_s: np.ndarray, layout: range_image.Layout) -> np.ndarray:
+    """[rows * cols, 3] float64: the nearest return of each pixel of the raw scan raw_s [N, 3] (sensor
+    frame), NaN where the pixel has none (`range_image.min_range_image`'s returns themselves)."""
+    row, col, rng, inside = range_image.pixels(np.asarray(raw_s, np.float32), layout)
+    ok = inside & np.isfinite(rng) & (rng > 0)
+    flat = row[ok].astype(np.int64) * layout.cols + col[ok]
+    order = np.lexsort((rng[ok], flat))
+    f = flat[order]
+    first = np.r_[True, f[1:] != f[:-1]] if len(f) else np.zeros(0, bool)
+    xyz = np.full((layout.rows * layout.cols, 3), np.nan)
+    xyz[f[first]] = np.asarray(raw_s, np.float64)[ok][order][first]
+    return xyz
+
+
+def range_image_normals(points_s: np.ndarray, raw_s: np.ndarray, layout: range_image.Layout,
+                        k: int) -> tuple[np.ndarray, np.ndarray]:
+    """PCA normals from the scan's own range-image neighbours (`preprocess.normals: range_image`): a
+    spinning LiDAR's organised scan gives each point its neighbours for free, the nearest returns of the
+    pixels around its pixel (`RANGE_WINDOW`, `nearest_return_image`; columns wrap), of which the k
+    nearest in space make its plane; oriented towards the sensor, the direction to the sensor where
+    fewer than 3 span none. The reference (float64) of `jaxmap.preprocess_device.range_image_normals`.
+
+    points_s [M, 3] float32 (the preprocessed points), raw_s [N, 3] the raw scan they come from, sensor
+    frame -> (normals [M, 3] float32 unit, neighbours [M] int)."""
+    m = len(points_s)
+    if m == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0,), np.int64)
+    xyz = nearest_return_image(raw_s, layout)
+    p = np.asarray(points_s, np.float64)
+    row, col, _, _ = range_image.pixels(np.asarray(points_s, np.float32), layout)
+    off = window_offsets()
+    rr, cc = row[:, None] + off[:, 0], (col[:, None] + off[:, 1]) % layout.cols
+    inside = (rr >= 0) & (rr < layout.rows)
+    cand = xyz[np.clip(rr, 0, layout.rows - 1) * layout.cols + cc]              # [M, K, 3]
+    rel = cand - p[:, None, :]
+    d2 = np.where(inside & np.isfinite(rel[..., 0]), np.sum(np.nan_to_num(rel) ** 2, -1), np.inf)
+    nearest = np.argsort(d2, axis=1, kind="stable")[:, :k]
+    use = np.isfinite(np.take_along_axis(d2, nearest, 1))
+    x = np.nan_to_num(np.take_along_axis(rel, nearest[:, :, None], 1)) * use[:, :, None]
+    cnt = use.sum(1)
+    mean = x.sum(1) / np.maximum(cnt, 1)[:, None]
+    c = (x - mean[:, None, :]) * use[:, :, None]
+    cov = np.einsum("nki,nkj->nij", c, c) / np.maximum(cnt, 1)[:, None, None]
+    normals = np.linalg.eigh(cov)[1][:, :, 0]
+    flip = np.einsum("ni,ni->n", normals, -p) < 0
+    normals[flip] = -normals[flip]
+    few = cnt < MIN_PLANE_POINTS
+    normals[few] = -p[few] / np.maximum(np.linalg.norm(p[few], axis=1, keepdims=True), 1e-9)
+    return normals.astype(np.float32), cnt
 
 
 def layout_of(cfg, points_s: np.ndarray | None = None) -> range_image.Layout | None:
@@ -253,4 +319,4 @@ def preprocess_points(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray
     pts = voxel_downsample(pts, cfg.vox_down_m)
     if cfg.outlier_mad > 0:
         pts = remove_outliers(pts, cfg.normal_knn, cfg.outlier_mad)
-    return pts.astype(np.float32), normals_of(pts, cfg)
+    return pts.astype(np.float32), normals_of(pts, cfg, points_s)

@@ -23,9 +23,45 @@ from jax import lax
 
 from jaxmap.grid.compaction import nonzero_fixed
 from jaxmap.grid.features import CORNER_OFFSETS
-from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span
+from jaxmap.preprocess import CUBE_KNN_CAP, DOWNSAMPLE_TIE, MIN_PLANE_POINTS, key_span, layout_of, window_offsets
+from jaxmap.range_image import pixels
 
 INT_MAX = jnp.iinfo(jnp.int32).max
+DEVICE_NORMALS = "cube_knn"  # what `normals: knn` (the host's k-d tree) becomes on the device
+_SAID: set = set()           # the choices `resolve` has logged in this process
+
+
+def resolve(p, backend: str | None = None):
+    """`p` (a PreprocessConfig) with `device` decided, "true" or "false": "auto" is the device where jax
+    runs on a GPU or TPU (there the frame program preprocesses a city scan in a few ms, the host's
+    k-d tree normals take ~100 ms a scan and would hold the map back) unless outlier removal is on
+    (host only), and the host on a CPU (the same cores either way: the host's normals are ~1 % better
+    on the validation suite). On the device, `normals: knn` (the host's) becomes cube_knn, the k
+    nearest among a hashed-grid cube. The choice is logged once. backend: jax.default_backend()."""
+    import dataclasses
+    import logging
+
+    if p.device == "false" or (p.device == "true" and p.normals != "knn"):
+        return p
+    backend = backend or jax.default_backend()
+    why = ""
+    if p.device == "auto":
+        if backend == "cpu":
+            return dataclasses.replace(p, device="false")
+        if p.outlier_mad > 0:
+            why = f"preprocessing on the host: preprocess.outlier_mad={p.outlier_mad:g} runs there only"
+            p = dataclasses.replace(p, device="false")
+        else:
+            why = f"preprocessing on the device (jax backend {backend}; the host would hold the frame program back)"
+            p = dataclasses.replace(p, device="true")
+    if p.device == "true" and p.normals == "knn":
+        why = (why or "preprocessing on the device (preprocess.device=true)") + (
+            f"; normals {DEVICE_NORMALS} (knn runs on the host only)")
+        p = dataclasses.replace(p, normals=DEVICE_NORMALS)
+    if why and why not in _SAID:
+        _SAID.add(why)
+        logging.getLogger("jaxmap").info("%s", why)
+    return p
 
 
 def crop_mask(points, valid, *, min_range: float, max_range: float, min_z: float, max_z: float):
@@ -144,6 +180,12 @@ def _knn_in_cube(points, valid, k: int, cap: int, level, cells, orders, starts, 
     cand = jnp.transpose(cand, (1, 0, 2)).reshape(n, 8 * cap)
     ok = jnp.transpose(ok, (1, 0, 2)).reshape(n, 8 * cap)
     rel = points[cand] - points[:, None, :]                                      # relative: float32 stays exact
+    return _nearest_covariance(rel, ok, valid, k)
+
+
+def _nearest_covariance(rel, ok, valid, k: int):
+    """Count [N] and covariance [N, 3, 3] of the k nearest of each point's candidates: rel [N, C, 3]
+    relative to the point, ok [N, C] the real ones, valid [N]."""
     d2 = jnp.where(ok, jnp.sum(rel * rel, -1), jnp.inf)
     neg, nb = lax.top_k(-d2, k)                                                  # [N, k]
     use = jnp.isfinite(neg) & valid[:, None]
@@ -154,6 +196,18 @@ def _knn_in_cube(points, valid, k: int, cap: int, level, cells, orders, starts, 
     c = (x - mean[:, None, :]) * m[:, :, None]
     cov = jnp.einsum("nki,nkj->nij", c, c, precision=lax.Precision.HIGHEST) / jnp.maximum(cnt, 1.0)[:, None, None]
     return cnt, cov
+
+
+def _plane_normals(cov, cnt, points, valid):
+    """The planes' normals [N, 3] of covariances [N, 3, 3] of `cnt` [N] points around points [N, 3]
+    (sensor frame), facing the sensor; the direction to the sensor where fewer than 3 points span no
+    plane (the only honest guess), +z on invalid rows."""
+    normals = smallest_eigenvector(cov)
+    flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
+    normals = jnp.where(flip[:, None], -normals, normals)
+    view = -points / jnp.maximum(jnp.linalg.norm(points, axis=1, keepdims=True), 1e-9)
+    normals = jnp.where((cnt < MIN_PLANE_POINTS)[:, None], view, normals)
+    return jnp.where(valid[:, None], normals, np.array([0.0, 0.0, 1.0], np.float32))
 
 
 def smallest_eigenvector(cov):
@@ -209,14 +263,7 @@ def grid_normals(points, valid, *, cell: float, levels: int, k: int, max_range: 
     if knn_cap > 0:
         cells, orders, starts, counts = (jnp.stack(a) for a in zip(*per_level))
         chosen_n, chosen_cov = _knn_in_cube(points, valid, k, knn_cap, level, cells, orders, starts, counts)
-    normals = smallest_eigenvector(chosen_cov)
-    flip = jnp.sum(normals * points, axis=1) > 0          # orient towards the sensor: n . (0 - p) > 0
-    normals = jnp.where(flip[:, None], -normals, normals)
-    # Fewer than 3 points span no plane: the direction to the sensor is the only honest guess.
-    view = -points / jnp.maximum(jnp.linalg.norm(points, axis=1, keepdims=True), 1e-9)
-    normals = jnp.where((chosen_n < MIN_PLANE_POINTS)[:, None], view, normals)
-    normals = jnp.where(valid[:, None], normals, np.array([0.0, 0.0, 1.0], np.float32))
-    return normals, jnp.where(valid, chosen_n, 0.0)
+    return _plane_normals(chosen_cov, chosen_n, points, valid), jnp.where(valid, chosen_n, 0.0)
 
 
 def preprocess_scan(points, valid, cfg, rows: int):
@@ -233,6 +280,32 @@ def preprocess_scan(points, valid, cfg, rows: int):
     ok = idx < n
     pts = jnp.where(ok[:, None], points[jnp.minimum(idx, n - 1)], 0.0)
     # Normals of the packed rows only: a scan keeps ~3/4 of its points, and this is most of the cost.
-    normals, _ = grid_normals(pts, ok, cell=cfg.normal_cell_m, levels=cfg.normal_levels, k=cfg.normal_knn,
-                              max_range=cfg.max_range_m, knn_cap=CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0)
+    if cfg.normals == "range_image":
+        normals, _ = range_image_normals(pts, ok, points, valid, layout_of(cfg), cfg.normal_knn)
+    else:
+        normals, _ = grid_normals(pts, ok, cell=cfg.normal_cell_m, levels=cfg.normal_levels, k=cfg.normal_knn,
+                                  max_range=cfg.max_range_m, knn_cap=CUBE_KNN_CAP if cfg.normals == "cube_knn" else 0)
     return pts, normals, ok, jnp.sum(keep, dtype=jnp.int32)
+
+
+def range_image_normals(points, valid, raw, raw_valid, layout, k: int):
+    """PCA normals from the scan's own range-image neighbours (`jaxmap.preprocess.range_image_normals`,
+    its float64 reference, says how): static shapes throughout, the window a fixed set of pixels, the k
+    nearest of its returns by `lax.top_k`. points [M, 3] float32 sensor frame, valid [M]; raw [N, 3],
+    raw_valid [N]: the raw scan (the range image's returns); layout: its `range_image.Layout` ->
+    (normals [M, 3] unit float32, neighbours [M] float32; 0 for invalid rows)."""
+    hw = layout.rows * layout.cols
+    row, col, rng, inside = pixels(raw, layout, jnp)
+    ok = raw_valid & inside & jnp.isfinite(rng) & (rng > 0)
+    flat = jnp.where(ok, row * layout.cols + col, hw)
+    nearest = jnp.full((hw + 1,), jnp.inf, jnp.float32).at[flat].min(rng)
+    is_nearest = ok & (rng == nearest[flat])
+    xyz = jnp.full((hw, 3), jnp.nan, jnp.float32).at[jnp.where(is_nearest, flat, hw)].set(raw, mode="drop")
+    prow, pcol, _, _ = pixels(points, layout, jnp)
+    off = jnp.asarray(window_offsets())
+    rr, cc = prow[:, None] + off[:, 0], (pcol[:, None] + off[:, 1]) % layout.cols
+    in_image = (rr >= 0) & (rr < layout.rows)
+    rel = xyz[jnp.clip(rr, 0, layout.rows - 1) * layout.cols + cc] - points[:, None, :]   # [M, K, 3] relative
+    good = in_image & jnp.isfinite(rel[..., 0])
+    cnt, cov = _nearest_covariance(jnp.where(good[..., None], rel, 0.0), good, valid, k)
+    return _plane_normals(cov, cnt, points, valid), jnp.where(valid, cnt, 0.0)

@@ -27,9 +27,9 @@ def round_up(n: float, step: int = ROW_STEP) -> int:
 
 
 def bucket_for(n: int, current: int = 0) -> int:
-    """Padded scan size: the current bucket while n fits, else 1.25 n rounded up to BUCKET_STEP
-    (a new bucket recompiles the frame program, so it leaves room for the next scans)."""
-    if 0 < n <= current:
+    """Padded scan size: the current bucket while n fits (an empty scan fits any), else 1.25 n rounded
+    up to BUCKET_STEP (a new bucket recompiles the frame program, so it leaves room for the next scans)."""
+    if current and n <= current:
         return current
     return int(np.ceil(max(1.25 * n, 1) / BUCKET_STEP) * BUCKET_STEP)
 

@@ -80,14 +80,13 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
     from jaxmap.metrics import format_metrics
     from jaxmap.n3.run import prepare_frame
 
-    real = mapper_mod.N3Mapper.add_frame
+    real_submit, real_finish = mapper_mod.N3Mapper.submit, mapper_mod.N3Mapper.finish
 
-    def trains_on_six_of_seven(self, points, pose, **kw):
-        info = real(self, points, pose, **kw)
-        info["kept"] = np.arange(len(kw["prepared"][0])) % 7 != 0
-        return info
+    def six_of_seven(finished):  # each finished frame's (record, kept) as if it trained on 6 of 7 points
+        return [(record, np.arange(len(kept)) % 7 != 0) for record, kept in finished]
 
-    monkeypatch.setattr(mapper_mod.N3Mapper, "add_frame", trains_on_six_of_seven)
+    monkeypatch.setattr(mapper_mod.N3Mapper, "submit", lambda self, *a, **kw: six_of_seven(real_submit(self, *a, **kw)))
+    monkeypatch.setattr(mapper_mod.N3Mapper, "finish", lambda self: six_of_seven(real_finish(self)))
     sel = ["--set", "data.begin_frame=8", "--set", "data.end_frame=16", "--set", "data.every_frame=2"]
     out = tmp_path / "run"
     assert main(["map", "configs/city.yaml", "--data", str(small_parking_city), "--out", str(out), "--no-progress",

@@ -75,7 +75,7 @@ def _frame_fit(run_dir, data, n3cfg) -> np.ndarray:
     seq = open_sequence(str(data))
     out = []
     for i, T in enumerate(poses):
-        pts, _, _ = scan.preprocess(seq.frame(i).points, np.eye(4), n3cfg.preprocess, i)
+        pts, _, _ = scan.preprocess(seq.frame(i).points, np.eye(4), n3cfg.preprocess, i)[:3]
         sdf, ok = m.sdf(pts.astype(np.float64) @ T[:3, :3].T + T[:3, 3])
         out.append(np.median(np.abs(sdf[ok])))
     return np.asarray(out)

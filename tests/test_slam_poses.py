@@ -107,10 +107,10 @@ def test_a_failure_mid_run_saves_the_map_and_names_the_frame(small_room, tmp_pat
 
     real = frontend.FrontEnd.add_frame
 
-    def failing(self, points_s):
+    def failing(self, points_s, **kw):
         if len(self.frame_ref) == 3:
             raise RuntimeError("simulated ICP crash")
-        return real(self, points_s)
+        return real(self, points_s, **kw)
 
     monkeypatch.setattr(frontend.FrontEnd, "add_frame", failing)
     cfg = SlamConfig(data=DataConfig(path=str(small_room), every_frame=1), mesh_at_loops=False,
@@ -144,7 +144,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
             self.n, self.loops = 0, []
             self.odometry = type("O", (), {"velocity": np.eye(4)})()
 
-        def add_frame(self, points_s):
+        def add_frame(self, points_s, scan=None):
             k, self.n = self.n, self.n + 1
             closing = k == len(gt) - 1
             poses = gt[:k + 1] if closing else drift[:k + 1]

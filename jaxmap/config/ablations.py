@@ -21,6 +21,9 @@ VARIANTS = {
     # the scan preprocessed inside the frame program (k nearest in the grid's cubes; whole-cube PCA)
     "device": ["preprocess.device=true", "preprocess.normals=cube_knn"],
     "device_grid": ["preprocess.device=true", "preprocess.normals=grid"],
+    # the k nearest of each point's range-image neighbours (the scan's own organisation), on the device / host
+    "device_range": ["preprocess.device=true", "preprocess.normals=range_image"],
+    "range_image": ["preprocess.normals=range_image"],
     "projective": ["sampling.label_mode=projective"],
     "corrected": ["sampling.label_mode=corrected"],
     "replay": ["window.mode=replay"],

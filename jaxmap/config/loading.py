@@ -66,6 +66,8 @@ def _coerce(value: Any, typ: Any, where: str) -> Any:
         except (TypeError, ValueError):
             raise ConfigError(f"{where}: expected a number, got {value!r}") from None
     if typ is str:
+        if isinstance(value, bool):  # a YAML yes / no where words are expected (`device: true`)
+            return "true" if value else "false"
         if not isinstance(value, (str, int, float)):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
         return str(value)

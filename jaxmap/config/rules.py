@@ -86,10 +86,10 @@ def _map_checks(c: "MapConfig", x: str):
 
 def host_preprocess_checks(c: Any, x: str):
     """`jaxmap imt` and `jaxmap slam` preprocess on the host only."""
-    if c.preprocess.device:
+    if c.preprocess.device == "true":
         yield (f"{x}preprocess.device",), (
             f"{x}preprocess.device=true is for `jaxmap map` (N3) only; this command preprocesses on the host: "
-            "set it to false")
+            "set it to false or auto")
 
 
 def _slam_checks(c: SlamConfig, x: str):
@@ -114,15 +114,11 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
             f"{x}max_range_m={p.max_range_m!r} must be greater than {x}min_range_m={p.min_range_m!r}")
     if not p.max_z_m > p.min_z_m:
         yield (f"{x}max_z_m", f"{x}min_z_m"), f"{x}max_z_m={p.max_z_m!r} must be greater than {x}min_z_m={p.min_z_m!r}"
-    if p.device and p.normals == "knn":
-        yield (f"{x}device", f"{x}normals"), (
-            f"{x}device=true needs {x}normals=cube_knn or grid (k nearest neighbours over the whole scan run on "
-            "the host only); set one of them")
-    if p.device and p.outlier_mad > 0:
+    if p.device == "true" and p.outlier_mad > 0:
         yield (f"{x}device", f"{x}outlier_mad"), (
             f"{x}device=true cannot remove outliers ({x}outlier_mad={p.outlier_mad!r} runs on the host); "
             f"set {x}device=false or {x}outlier_mad=0")
-    if p.normals != "knn":
+    if p.normals in ("grid", "cube_knn"):
         yield from _grid_checks(p, x)
     if p.image_rows > 0 and not (p.image_cols > 0 and p.image_elev_step_deg > 0):
         yield (f"{x}image_rows", f"{x}image_cols", f"{x}image_elev_step_deg"), (
@@ -144,7 +140,8 @@ RULES: dict[type, dict[str, Rule]] = {
     DataConfig: {"kind": one_of(*DATA_KINDS), "begin_frame": at_least(0), "every_frame": at_least(1),
                  "path": NONEMPTY},
     PreprocessConfig: {"min_range_m": at_least(0.0), "vox_down_m": at_least(0.0), "normal_knn": at_least(3),
-                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid", "cube_knn"),
+                       "outlier_mad": at_least(0.0), "normals": one_of("knn", "grid", "cube_knn", "range_image"),
+                       "device": one_of("auto", "true", "false"),
                        "normal_cell_m": above(0.0), "normal_levels": at_least(1), "veil_m": at_least(0.0),
                        "image_rows": at_least(0), "image_cols": at_least(0), "image_elev_step_deg": at_least(0.0)},
     EvidenceConfig: {"margin_m": at_least(0.0), "void_frames": at_least(1), "max_range_m": above(0.0)},

@@ -32,10 +32,12 @@ class PreprocessConfig:
     vox_down_m: float = 0.05         # voxel downsample before sampling (0 = off)
     normal_knn: int = 20             # neighbours for PCA normals (grid: the fewest points a neighbourhood must hold)
     normals: str = "knn"             # "knn" (k nearest neighbours, scipy on the host), "cube_knn" (the k nearest
-                                     # among the points of a hashed-grid cube) or "grid" (all of the cube)
+                                     # among the points of a hashed-grid cube), "grid" (all of the cube) or
+                                     # "range_image" (the k nearest of the scan's range-image neighbours)
     normal_cell_m: float = 0.15      # grid normals: the finest cell; a point's neighbourhood is 2 x 2 x 2 cells
     normal_levels: int = 3           # grid normals: cell sizes normal_cell_m * 2^l, l < this (the finest with >= knn)
-    device: bool = False             # preprocess on the device, inside the frame program (needs normals: cube_knn or grid)
+    device: str = "auto"             # preprocess inside the frame program, on the device: true | false | auto (the
+                                     # device on a GPU or TPU, the host on a CPU); there normals knn becomes cube_knn
     outlier_mad: float = 0.0         # > 0: drop points whose range-scaled mean neighbour distance is this many
                                      # robust std above the scan's median (mixed pixels, stray returns); 0 = off
     veil_m: float = 0.15             # > 0: drop mixed pixels and isolated returns on the scan's range image (a

@@ -198,7 +198,9 @@ def init_features(key: jax.Array, n_rows: int, dim: int, std: float) -> jax.Arra
     Returns:
       ``[n_rows, dim]`` float32.
     """
-    return jnp.float32(std) * jax.random.normal(key, (n_rows, dim), jnp.float32)
+    # The barrier keeps XLA from folding `std` into the normal's own scaling inside a larger program
+    # (`jax.jit(init_state)`): the rows are then the same bits however the table is built.
+    return jnp.float32(std) * jax.lax.optimization_barrier(jax.random.normal(key, (n_rows, dim), jnp.float32))
 
 
 FEATURE_INIT_BLOCK = 1 << 16

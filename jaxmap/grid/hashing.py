@@ -440,5 +440,12 @@ def entries(table: HashTable) -> tuple[np.ndarray, np.ndarray]:
     keys = np.asarray(table.keys)
     rows = np.asarray(table.rows)
     occupied = keys[:, 0] != EMPTY
-    order = np.argsort(rows[occupied], kind="stable")
-    return keys[occupied][order], rows[occupied][order]
+    keys, rows = keys[occupied], rows[occupied]
+    n = len(rows)
+    if n and rows.min() >= 0 and rows.max() < n:  # rows 0 .. n-1 (an `insert` table): invert, O(n)
+        order = np.full(n, -1, np.int64)
+        order[rows] = np.arange(n)
+        if order.min() >= 0:  # every row once
+            return keys[order], rows[order]
+    order = np.argsort(rows, kind="stable")
+    return keys[order], rows[order]

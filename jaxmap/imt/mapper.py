@@ -10,12 +10,14 @@ map and its active-voxel count), the immutable keyframe store (`mapper.store`, r
 changed) and the encode capacities that sufficed so far (`mapper.hints`). Every added frame is
 preprocessed (crop, downsample to about voxel/4, PCA normals towards the sensor) and pooled into
 cells on the world grid at its pose on the host, then kept as a keyframe and encoded and fused by
-one compiled program (`core.integrate`), whose stats are read once.
+one compiled program (`core.integrate`), whose stats are read once. The host's part (`prepare`) can be
+done ahead, in the frame loop's prefetch threads (`jaxmap.imt.run.prepare_frame`).
 """
 from __future__ import annotations
 
 import os
 import time
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -34,6 +36,15 @@ from jaxmap.imt.meshing import query
 from jaxmap.imt.prior import load_prior
 from jaxmap.imt.remap import RemapOptions
 from jaxmap.preprocess import preprocess_scan
+
+
+class HostScan(NamedTuple):
+    """A scan as `ImtMapper.prepare` leaves it for the frame program."""
+
+    points: np.ndarray           # [M, 3] float32 sensor frame, preprocessed
+    normals: np.ndarray          # [M, 3] float32 sensor frame
+    cells: tuple | None          # `latent_map.pool_cells` at the frame's pose (world grid), None: not yet
+    seconds: float               # the host time it took
 
 
 def remap_options(cfg: ImtConfig) -> RemapOptions:
@@ -74,6 +85,21 @@ class ImtMapper:
         """Crop, downsample and normals: [N,3] sensor frame -> (points [M,3], normals [M,3]) sensor frame."""
         return preprocess_scan(np.asarray(points_s, np.float32), self.cfg.preprocess)
 
+    def prepare(self, points_s: np.ndarray, pose: np.ndarray | None = None) -> HostScan:
+        """What `add_frame` does on the host before its frame program, for a prefetch thread (it reads
+        only the config): the preprocessed scan and, when the pose is known, its cells pooled on the
+        world grid at that pose."""
+        t0 = time.perf_counter()
+        pts, nrm = self.preprocess(points_s)
+        cells = None if pose is None else self._pool(pts, nrm, np.asarray(pose, np.float64))
+        return HostScan(pts, nrm, cells, time.perf_counter() - t0)
+
+    def _pool(self, pts, nrm, pose):
+        T_w_s = SE3.from_matrix(pose)
+        pw = T_w_s.apply(pts.astype(np.float64))
+        nw = T_w_s.rotation().apply(np.asarray(nrm, np.float64))
+        return lm.pool_cells(pw, nw, self.cfg.map.voxel_size_m, self.cfg.map.cells_per_voxel)
+
     def encode(self, points_s, normals_s, pose, with_jacobian: bool = True) -> lm.LatentMap:
         """Local map of preprocessed points at `pose` (world grid), with Jacobians for `transform`.
 
@@ -87,29 +113,28 @@ class ImtMapper:
         return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
                                with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.hints)
 
-    def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None) -> dict:
-        """Encode, fuse and keep a frame. Returns its timings (s) and sizes: `encode_s` is the host's
-        pooling and the frame program (encode and fuse, one program), `fuse_s` what follows it on the host.
+    def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None,
+                  prepared: HostScan | None = None) -> dict:
+        """Encode, fuse and keep a frame. Returns its timings (s) and sizes: `preprocess_s` the host's
+        preprocessing (its time in the prefetch thread when `prepared`), `encode_s` the host's pooling
+        and the frame program (encode and fuse, one program), `fuse_s` what follows it on the host.
 
         pose_source: where the pose came from, named by the error when it is not a rigid transform
-        (None: the user's pose file, and the error says how to fix it)."""
+        (None: the user's pose file, and the error says how to fix it). prepared: `prepare(points_s)`
+        made ahead (then `points_s` is not read), with the cells when made at this pose."""
         pose = np.asarray(pose, np.float64)
         validate_pose(pose, f"pose of frame {frame if frame is not None else len(self.store)}", source=pose_source)
-        c = self.cfg.map
-        t0 = time.perf_counter()
-        pts, nrm = self.preprocess(points_s)
+        pts, nrm, cells, prep_s = self.prepare(points_s) if prepared is None else prepared
         t1 = time.perf_counter()
-        T_w_s = SE3.from_matrix(pose)
-        pw = T_w_s.apply(pts.astype(np.float64))
-        nw = T_w_s.rotation().apply(np.asarray(nrm, np.float64))
-        cells = lm.pool_cells(pw, nw, c.voxel_size_m, c.cells_per_voxel)
+        if cells is None:
+            cells = self._pool(pts, nrm, pose)
         frame = len(self.store) if frame is None else frame
         # the store and the state are replaced only once the frame is in: a failure leaves both as they were
         self.state, self.store, stats = core.integrate(self.static, self.state, self.store, self.prior, cells, pose,
                                                        frame, self.hints)
         t2 = time.perf_counter()
         info = {"frame": int(self.store.frames[-1]), "points": int(len(pts)), "cells": int(len(cells[0])),
-                "preprocess_s": t1 - t0, "encode_s": t2 - t1, "fuse_s": time.perf_counter() - t2,
+                "preprocess_s": prep_s, "encode_s": t2 - t1, "fuse_s": time.perf_counter() - t2,
                 "local_voxels": int(stats.local_voxels), "map_voxels": int(stats.active)}
         self.timings.append(info)
         return info

@@ -26,19 +26,29 @@ from jaxmap.frame_loop import (Checkpoints, Frame, LoopResult, Prefetcher, Progr
 from jaxmap.imt.mapper import ImtMapper
 
 
-def fuse_frame(mapper: ImtMapper, poses, frame: Frame) -> tuple[dict, np.ndarray]:
-    """The transformable map's step of the frame loop: the frame fused at its pose (or at poses[position])."""
-    pose = frame.pose if poses is None else poses[frame.position]
-    return mapper.add_frame(frame.points, pose, frame=frame.index), pose
+def prepare_frame(mapper: ImtMapper, poses, seq, i: int) -> Frame:
+    """`Prefetcher` loader of frame i: read, preprocessed and pooled at its pose (the sequence's, or
+    poses[i]) on the host (`ImtMapper.prepare`), off the main thread; `batch` holds the `HostScan`."""
+    fr = seq.frame(i)
+    pose = np.asarray(fr.pose if poses is None else poses[i], np.float64)
+    prepared = mapper.prepare(fr.points, pose)
+    return Frame(i, int(fr.index), prepared.points, pose, prepared.normals, batch=prepared)
+
+
+def fuse_frame(mapper: ImtMapper, frame: Frame) -> tuple[dict, np.ndarray]:
+    """The transformable map's step of the frame loop: the prepared frame fused at its pose."""
+    return mapper.add_frame(None, frame.pose, frame=frame.index, prepared=frame.batch), frame.pose
 
 
 def fuse_sequence(mapper: ImtMapper, seq, poses=None, progress: bool = True, desc: str = "imt", viewer=None,
                   checkpoints: Checkpoints | None = None, t_start: float | None = None) -> LoopResult:
     """Fuse every frame of `seq` into `mapper` at the sequence's poses (or `poses` [n, 4, 4]) through the
-    frame loop. viewer: `jaxmap.viewer.ViewerHooks` shown every frame (None = no viewer)."""
+    frame loop, each prepared ahead in the prefetch threads. viewer: `jaxmap.viewer.ViewerHooks` shown
+    every frame (None = no viewer)."""
     bar = Progress(desc, progress, postfix=lambda r: {"enc": f"{r['encode_s']:.2f}s", "voxels": r["map_voxels"]})
-    return run_frames(Prefetcher(seq, 0, len(seq)), functools.partial(fuse_frame, mapper, poses), total=len(seq),
-                      progress=bar, viewer=viewer, checkpoints=checkpoints, t_start=t_start)
+    frames = Prefetcher(seq, 0, len(seq), functools.partial(prepare_frame, mapper, poses))
+    return run_frames(frames, functools.partial(fuse_frame, mapper), total=len(seq), progress=bar, viewer=viewer,
+                      checkpoints=checkpoints, t_start=t_start)
 
 
 def build_map(cfg: ImtConfig, seq, poses=None, progress: bool = True, desc: str = "imt") -> ImtMapper:

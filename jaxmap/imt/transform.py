@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmap.geometry import einsum, matmul
 from jaxmap.grid import hashing
 from jaxmap.grid.features import CORNER_OFFSETS
 from jaxmap.imt.latent_map import LatentMap, VoxelBatch, voxel_keys, empty, fuse
@@ -69,7 +70,7 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
         T = jnp.broadcast_to(T, (b.coords.shape[0],) + T.shape)
     R, t = T[:, :3, :3], T[:, :3, 3]                                       # [P, 3, 3], [P, 3]
     c = (b.coords.astype(jnp.float32) + 0.5) * voxel_size                  # [P, 3] metres
-    u = (jnp.einsum("pij,pj->pi", R, c) + t) / voxel_size - 0.5            # [P, 3] continuous global index
+    u = (einsum("pij,pj->pi", R, c) + t) / voxel_size - 0.5                # [P, 3] continuous global index
     if exact is not None:
         u = jnp.where(exact[:, None], b.coords.astype(jnp.float32), u)
     base = jnp.floor(u)
@@ -82,7 +83,7 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
         s = s ** power
         s = s / jnp.sum(s, axis=-1, keepdims=True)
     tnm = (base[:, None] + corners[None]) - u[:, None]                     # [P, 8, 3] voxel units
-    lat_n = lat[:, None] + jacobian_sign * jnp.einsum("pcak,pnk->pnca", jac, tnm)   # [P, 8, C, 3]
+    lat_n = lat[:, None] + jacobian_sign * einsum("pcak,pnk->pnca", jac, tnm)   # [P, 8, C, 3]
     p = b.coords.shape[0]
     w = s * b.weight[:, None]                                              # [P, 8]
     valid = b.valid[:, None] & (b.weight[:, None] > 0) & (s > 1e-6)
@@ -102,7 +103,7 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     R, t = T[:3, :3], T[:3, 3]
     active = m.active()
     c = (m.coords.astype(jnp.float32) + 0.5) * vs
-    u = (c @ R.T + t) / vs - 0.5                                            # [R, 3]
+    u = (matmul(c, R.T) + t) / vs - 0.5                                     # [R, 3]
     cand = (jnp.floor(u)[:, None] + jnp.asarray(CORNER_OFFSETS)[None]).astype(jnp.int32).reshape(-1, 3)  # [8R, 3]
     cvalid = jnp.repeat(active, 8)
     # Unique candidate global voxels: a scratch hash table gives each distinct voxel one row.
@@ -114,7 +115,7 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     first = placed & (rep[jnp.maximum(rows, 0)] == idx_all)               # one entry per distinct voxel
     # Their centres in the local grid's continuous index, and the 27 lattice neighbours there.
     cn = (cand.astype(jnp.float32) + 0.5) * vs                              # [8R, 3] global metres
-    x = ((cn - t) @ R) / vs - 0.5                                           # [8R, 3] = T^-1 c_n, local index
+    x = matmul(cn - t, R) / vs - 0.5                                        # [8R, 3] = T^-1 c_n, local index
     nb = jnp.round(x).astype(jnp.int32)[:, None] + jnp.asarray(_NEIGHBOURS)[None]   # [8R, 27, 3]
     nrow = hashing.lookup(m.table, voxel_keys(nb.reshape(-1, 3))).reshape(nb.shape[:2])  # [8R, 27]
     ok = (nrow >= 0) & active[jnp.maximum(nrow, 0)]
@@ -130,8 +131,8 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     rk = jnp.maximum(rk, 0)
     mr = rotate(m, R)                                                       # the map's marked fields, F R^T, R J R^T
     lat, jac = mr.latent[rk], mr.jac[rk]                                    # [8R, K, C, 3], [8R, K, C, 3, 3]
-    tnm = (x[:, None] - nb.astype(jnp.float32)[jnp.arange(nb.shape[0])[:, None], idx]) @ R.T   # world frame
-    lat_n = lat + jacobian_sign * jnp.einsum("nmcak,nmk->nmca", jac, tnm)
+    tnm = matmul(x[:, None] - nb.astype(jnp.float32)[jnp.arange(nb.shape[0])[:, None], idx], R.T)   # world frame
+    lat_n = lat + jacobian_sign * einsum("nmcak,nmk->nmca", jac, tnm)
     latent = jnp.einsum("nm,nmca->nca", s, lat_n)
     jacn = jnp.einsum("nm,nmcak->ncak", s, jac)
     w = jnp.sum(s * m.weight[rk], axis=-1)

@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.geometry import rotate_vectors
+from jaxmap.geometry import einsum, rotate_vectors
 
 EPS = 1e-6  # guard of the projection in VNLeakyReLU, as in the reference implementation
 
@@ -209,7 +209,7 @@ def _is_marked(x) -> bool:
 def rotate_jacobians(j: jax.Array, R: jax.Array) -> jax.Array:
     """Jacobians `[..., 3, 3]` rotated by `R [3,3]`: `R J R^T`."""
     R = jnp.asarray(R, dtype=j.dtype)
-    return jnp.einsum("ab,...bc,dc->...ad", R, j, R)
+    return einsum("ab,...bc,dc->...ad", R, j, R)
 
 
 def _rotate_leaf(kind: str, v, R):

@@ -11,8 +11,9 @@ rebuilds the rest exactly:
 A restored state equals the saved one leaf for leaf but for those slots (tested). `save_state` writes
 one array at a time, on the CPU straight from the state's buffers: the save holds no copy of the map
 (orbax, before, held 2.5 copies: +2.6 GB at the end of the long drive). `save_state_async` copies the
-compact tree to the host (one copy) and writes it in a background thread, so mapping goes on while
-it is written; the next save waits for the previous one.
+state on the device (asynchronously, before the next frame program takes its buffers) and writes that
+copy in a background thread, so mapping goes on at once while it is written; the next save waits
+for the previous one.
 
 meta.json holds the config, the capacities and the per-frame timings so far; `arrays/` the tree, one
 `.npy` per leaf (`state/`, an orbax tree, in earlier checkpoints: still read).
@@ -176,23 +177,33 @@ def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list)
     """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are
     kept), one array at a time: on the CPU straight from the state's buffers, with no copy."""
     wait_for_saves()
+    _write(path, cfg, state, timings)
+
+
+def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> None:
     save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings), step=int(state.frame))
 
 
 _PENDING: list = []  # the one background save in flight: [thread, error or None]
 
 
-def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> None:
-    """Like `save_state`, but the write happens in a background thread after one host copy of the
-    compact state; call `wait_for_saves()` before relying on the files."""
+# A copy of the whole state on the device, one program (leaf by leaf, the copies compiled one small
+# program per shape the first time: 3 s of the main thread at the first checkpoint of a city run).
+_snapshot = jax.jit(lambda state: jax.tree_util.tree_map(jnp.copy, state))
+
+
+def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, copy: bool = True) -> None:
+    """Like `save_state`, but written in a background thread from a copy of the state made on the device
+    (`_snapshot`: asynchronous, in order before the next frame program, which donates the state's
+    buffers), so the caller goes on at once; copy=False: from `state` itself, which nothing may change
+    until it is written. Call `wait_for_saves()` before relying on the files."""
     wait_for_saves()
-    tree, meta = compact(state), meta_of(cfg, state, timings)
+    snapshot, timings = _snapshot(state) if copy else state, list(timings)
     slot = [None, None]
 
     def work():
         try:
-            save_arrays(path, [(name, functools.partial(np.asarray, x)) for name, x in named_leaves(tree)], meta,
-                        step=meta["frame"])
+            _write(path, cfg, snapshot, timings)
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
             slot[1] = e
 

@@ -5,6 +5,7 @@
     state = set_origin(static, state, sensor_xyz_world) # once, before the first frame
     state, frame_stats, train_stats = step(static, state, scan)   # integrate + train, one jit
     ... = step_raw(static, state, raw_scan, rows)      # the same from a raw scan (preprocess.device)
+    pipe = FramePipeline(static, state, headroom, seed=..., feature_std=...)   # the host's driver of frames
     sdf, valid = query(static, state, points_m)
 
 Where each part lives, read top to bottom:
@@ -13,7 +14,8 @@ Where each part lives, read top to bottom:
   - `jaxmap.n3.query`: the SDF at map-frame points, and its host wrappers;
   - `jaxmap.n3.integrate`: one scan into the map (sample, allocate, store, slide, carve);
   - `jaxmap.n3.train`: K iterations of batch selection, loss and Adam;
-  - `jaxmap.n3.frame`: `step` (both in one donated program), growth and the host's frame driver.
+  - `jaxmap.n3.frame`: `step` (both in one donated program), growth and the host's frame driver
+    (`FramePipeline`: frames dispatched ahead of their stats).
 """
 from jaxmap.grid.features import FEATURE_INIT_BLOCK
 from jaxmap.n3.frame import (
@@ -21,19 +23,23 @@ from jaxmap.n3.frame import (
     compiles_since,
     EXECUTABLES,
     EXECUTABLES_KEPT,
+    FrameDone,
+    FramePipeline,
     compiled_step,
     forget_compiled,
     frames_held_jit,
     grow_for,
     run_frame,
     step,
+    step_after,
     step_raw,
     store_bytes,
 )
 from jaxmap.n3.integrate import FrameStats, integrate
 from jaxmap.n3.query import query, query_grad_jit, query_jit
 from jaxmap.n3.scan_batch import RawScan, ScanBatch, count_kept, prepare_scan
-from jaxmap.n3.state import Capacities, Hyper, N3State, N3Static, capacities_for, init_state, origin_world, set_origin
+from jaxmap.n3.state import (Capacities, Hyper, N3State, N3Static, capacities_for, init_state, origin_vox_for,
+                             origin_world, set_origin)
 from jaxmap.n3.train import TrainStats, train
 from jaxmap.sizes import pow2
 
@@ -41,9 +47,10 @@ from jaxmap.sizes import pow2
 _EXECUTABLES = EXECUTABLES
 
 __all__ = [
-    "COMPILE_SECONDS", "compiles_since", "EXECUTABLES", "EXECUTABLES_KEPT", "FEATURE_INIT_BLOCK", "Capacities", "FrameStats", "Hyper",
+    "COMPILE_SECONDS", "compiles_since", "EXECUTABLES", "EXECUTABLES_KEPT", "FEATURE_INIT_BLOCK", "Capacities", "FrameDone",
+    "FramePipeline", "FrameStats", "Hyper",
     "N3State", "N3Static", "RawScan", "ScanBatch", "TrainStats", "capacities_for", "compiled_step", "count_kept",
-    "forget_compiled", "frames_held_jit", "grow_for", "init_state", "integrate", "origin_world", "pow2",
-    "prepare_scan", "query", "query_grad_jit", "query_jit", "run_frame", "set_origin", "step", "step_raw",
+    "forget_compiled", "frames_held_jit", "grow_for", "init_state", "integrate", "origin_vox_for", "origin_world", "pow2",
+    "prepare_scan", "query", "query_grad_jit", "query_jit", "run_frame", "set_origin", "step", "step_after", "step_raw",
     "store_bytes", "train",
 ]

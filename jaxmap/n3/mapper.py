@@ -16,6 +16,7 @@ import numpy as np
 from jaxmap import hostmem
 from jaxmap.config import MapConfig
 from jaxmap.frame_loop import medians
+from jaxmap.geometry import validate_pose
 from jaxmap.n3 import core, scan
 from jaxmap.n3.query import extract_mesh_of, query_world
 from jaxmap.n3 import window
@@ -24,45 +25,81 @@ from jaxmap.sizes import pow2
 from jaxmap.viewer import copy_arrays
 
 _forget_jit = jax.jit(window.forget_frames)
+# The empty map as one program: built op by op, it compiled some fifty small programs each run (~4 s).
+_init_state = jax.jit(core.init_state, static_argnums=(0, 1, 2))
 
 
 class N3Mapper:
-    """Holds one `core.N3State` and the host-side record of a run (per-frame timings)."""
+    """Holds one `core.N3State` (in a `core.FramePipeline`, which runs the frame programs one frame ahead
+    of their stats) and the host-side record of a run (per-frame timings)."""
 
     def __init__(self, cfg: MapConfig | None = None, state: core.N3State | None = None,
-                 timings: list | None = None, first_scan: tuple | None = None):
-        """first_scan: (points_s [N,3], pose [4,4]) of the frame that will be added first, if known:
+                 timings: list | None = None, first_scan: tuple | None = None, first_frame=None):
+        """first_scan: (points_s [N,3], pose [4,4]) of the frame that will be added first, if known
+        (or first_frame: that frame as `scan.Uploader` made it, a `frame_loop.Frame` with its batch):
         the frame program is then compiled before the map's buffers are allocated, so the compiler's
-        heap (about a gigabyte on a CPU) and the map are not in memory at the same time."""
+        heap (about a gigabyte on a CPU) and the map are not in memory at the same time, and the map
+        frame is placed at its pose (`place_origin`)."""
         self.cfg = cfg or MapConfig()
         if state is None and first_scan is not None:
             self.cfg = scan.resolve_layout(self.cfg, first_scan[0])
         self.static = core.N3Static.from_config(self.cfg)
         self._bucket, self._headroom = 0, {}
+        first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
         if state is None:
             caps = core.capacities_for(self.static, self.cfg)
-            if first_scan is not None:
-                self._precompile(caps, *first_scan)
-            state = core.init_state(self.static, self.cfg, caps)
+            if first_frame is not None:
+                self._precompile(caps, first_frame.batch)
+            elif first_scan is not None:
+                self._precompile(caps, self._first_batch(*first_scan))
+            state = _init_state(self.static, self.cfg, caps)
             hostmem.trim()  # the initialisation's temporaries
-        self.state, self.timings = state, list(timings or [])
-        self.frames = int(self.state.frame)
+        self.timings = list(timings or [])
+        if self.timings:  # a resumed map pads its scans as the run did (the padding decides the samples)
+            self._bucket = int(self.timings[-1].get("bucket", 0))
+        self._pipe = core.FramePipeline(self.static, state, self._headroom, seed=self.cfg.train.seed,
+                                        feature_std=self.cfg.grid.feature_std)
+        self._unreported: list[dict] = []   # records of frames finished since `submit` / `finish` last returned
+        self.frames = int(state.frame)      # frames submitted
         # A host copy of the origin (fixed once the first frame set it): reading the state's every
         # frame would be a second device->host transfer per frame.
-        self._origin = core.origin_world(self.static, self.state)
+        self._origin = core.origin_world(self.static, state)
+        if first_pose is not None and self.frames == 0:
+            self.place_origin(first_pose)
 
-    def _precompile(self, caps: core.Capacities, points_s, pose) -> None:
-        """Compile the first frame's program from the shapes alone (`core.compiled_step` keeps it)."""
-        abstract = jax.eval_shape(lambda: core.init_state(self.static, self.cfg, caps))
+    @property
+    def state(self) -> core.N3State:
+        """The map after every frame added (waits for the frames still on the device)."""
+        self._settle()
+        return self._pipe.state
+
+    @state.setter
+    def state(self, value: core.N3State) -> None:
+        self._settle()
+        self._pipe.state = value
+
+    def place_origin(self, pose) -> None:
+        """Put the map frame at the sensor position of `pose` [4, 4] (the first frame's), snapped to the
+        coarsest voxel; before the first frame only (`add_frame` does it itself, `submit` needs it done)."""
+        if self.frames:
+            raise RuntimeError("the map frame is placed before the first frame only")
+        self._pipe.state = core.set_origin(self.static, self._pipe.state, _first_position(pose))
+        self._origin = core.origin_world(self.static, self._pipe.state)
+
+    def _first_batch(self, points_s, pose):
+        """The first frame's scan as its frame program takes it (for its shapes: the map frame is the sensor's)."""
         if self.static.preprocess is not None:
             pts, pose = scan.check_frame(points_s, pose, 0)
-            self._bucket = scan.bucket_for(len(pts))
-            batch = scan.to_raw(pts, pose, pose[:3, 3], self._bucket)
+            return scan.to_raw(pts, pose, pose[:3, 3], scan.bucket_for(len(pts)))
+        pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, 0, image=self.static.evidence)
+        return scan.to_batch(pts, nrm, pose, pose[:3, 3], scan.bucket_for(len(pts)), img)
+
+    def _precompile(self, caps: core.Capacities, batch) -> None:
+        """Compile the first frame's program from the shapes alone (`core.compiled_step` keeps it)."""
+        abstract = jax.eval_shape(lambda: _init_state(self.static, self.cfg, caps))
+        self._bucket = batch.points.shape[0]
+        if self.static.preprocess is not None:
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
-        else:
-            pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, 0, image=self.static.evidence)
-            self._bucket = scan.bucket_for(len(pts))
-            batch = scan.to_batch(pts, nrm, pose, pose[:3, 3], self._bucket, img)
         core.compiled_step(self.static, abstract, batch, self._headroom.get("scan_rows", 0))
 
     def fix_layout(self, points_s) -> None:
@@ -72,16 +109,17 @@ class N3Mapper:
             return
         self.cfg = scan.resolve_layout(self.cfg, points_s, self.frames)
         self.static = core.N3Static.from_config(self.cfg)
+        self._pipe.static = self.static
         caps = core.Capacities.of(self.state)
         self.state = None
-        self.state = core.init_state(self.static, self.cfg, caps)
+        self.state = _init_state(self.static, self.cfg, caps)
 
     def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
         """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
         `prepared` = (points, normals, pose[, image]) already preprocessed (`scan.preprocess`, e.g. in the
         frame loop's prefetch thread; the image, the whole scan's range image, feeds the free-space evidence).
-        Returns the frame's timings (s), loss, map/store sizes and `kept` ([M] bool: the prepared points
-        that got training samples; None with `preprocess.device`)."""
+        Returns, once the frame is in, its timings (s), loss, map/store sizes and `kept` ([M] bool: the
+        prepared points that got training samples; None with `preprocess.device`)."""
         t0 = time.perf_counter()
         device = self.static.preprocess is not None
         img = None
@@ -99,42 +137,81 @@ class N3Mapper:
             img = scan.empty_image(self.static.image)  # no image: this frame sees nothing free
         t1 = time.perf_counter()
         if self.frames == 0:
-            self.state = core.set_origin(self.static, self.state, pose[:3, 3])
-            self._origin = core.origin_world(self.static, self.state)
+            self.place_origin(pose)
         self._bucket = scan.bucket_for(len(pts), self._bucket)
         if device:
             batch = scan.to_raw(pts, pose, self._origin, self._bucket)
-            if "scan_rows" not in self._headroom:  # the first frame: size the rows by what it keeps
-                self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         else:
             batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket, img)
-        self.state, fs, ts, passes = core.run_frame(self.static, self.state, batch, self._headroom,
-                                                     seed=self.cfg.train.seed, feature_std=self.cfg.grid.feature_std)
-        t2 = time.perf_counter()
-        info = {"frame": self.frames, "points": int(fs.scan_points), "preprocess_s": t1 - t0, "map_s": t2 - t1,
-                "total_s": t2 - t0, "passes": passes, "loss": float(ts.loss), "bce": float(ts.bce),
-                "eikonal": float(ts.eikonal), "window_voxels": int(fs.window_blocks),
-                "store_pairs": int(fs.store_pairs),
-                "store_bytes": core.store_bytes(self.state.pool if self.static.uses_pool else self.state.store),
-                "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
-                "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
-                "free_dropped": int(fs.free_dropped), "carved": int(fs.carved),
-                "points_filtered": int(fs.points_filtered), "points_void": int(fs.points_void),
-                "voxels_free": int(fs.voxels_free), "voxels_void": int(fs.voxels_void),
-                "voxels_raised": int(fs.voxels_raised),
-                "feature_capacity": int(self.state.feature_table.shape[0]),
-                "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
+        self.submit(batch, points=len(pts), prepare_s=t1 - t0, main_s=time.perf_counter() - t0)
+        self._settle()
+        ((info, kept),) = self._take_unreported()
+        return {**info, "kept": kept}
+
+    def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
+               main_s: float = 0.0) -> list[tuple[dict, np.ndarray | None]]:
+        """Dispatch one frame's program and return without waiting for it: batch is its scan as the
+        frame program takes it (`scan.Uploader`: padded, in the map frame of `place_origin`, on the
+        device), of `points` prepared points. Returns (record, kept) of the frames finished meanwhile (the
+        one before it, usually), oldest first: the record is the one kept in `timings`, kept ([M] bool,
+        None with `preprocess.device`) the prepared points that got training samples. prepare_s / wait_s:
+        seconds its preparation took / the loop waited for it; main_s: seconds of the main thread's before
+        the dispatch (in its record's total_s)."""
+        if self.static.preprocess is not None and "scan_rows" not in self._headroom:
+            # the first frame: size the preprocessed rows by what it keeps
+            self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
+        self._bucket = batch.points.shape[0]
+        self._pipe.submit(batch, {"frame": self.frames, "preprocess_s": prepare_s, "wait_s": wait_s,
+                                  "main_s": main_s, "bucket": self._bucket, "n": points})
         self.frames += 1
-        self.timings.append(info)
-        # (not in the timings: a per-point mask per frame would bloat timing.json and the checkpoints)
-        return {**info, "kept": None if device else np.asarray(fs.kept)[:len(pts)]}
+        self._collect()
+        return self._take_unreported()
+
+    def finish(self) -> list[tuple[dict, np.ndarray | None]]:
+        """Wait for every frame submitted; (record, kept) of those not returned yet, oldest first."""
+        self._settle()
+        return self._take_unreported()
+
+    def _take_unreported(self) -> list[tuple[dict, np.ndarray | None]]:
+        out, self._unreported = self._unreported, []
+        return out
+
+    def _settle(self) -> None:
+        self._pipe.drain()
+        self._collect()
+
+    def _collect(self) -> None:
+        """The records of the frames whose stats came back."""
+        st = self._pipe.state  # (its shapes only)
+        device = self.static.preprocess is not None
+        for d in self._pipe.done():
+            fs, ts, tag = d.stats, d.train, d.tag
+            info = {"frame": tag["frame"], "points": int(fs.scan_points), "bucket": tag["bucket"],
+                    "preprocess_s": tag["preprocess_s"],
+                    "wait_s": tag["wait_s"], "dispatch_s": d.dispatch_s, "program_s": d.program_s,
+                    "stats_s": d.stats_s, "map_s": d.dispatch_s + d.program_s,
+                    "total_s": tag["main_s"] + d.dispatch_s + d.program_s, "passes": d.passes,
+                    "loss": float(ts.loss), "bce": float(ts.bce), "eikonal": float(ts.eikonal),
+                    "window_voxels": int(fs.window_blocks), "store_pairs": int(fs.store_pairs),
+                    "store_bytes": core.store_bytes(st.pool if self.static.uses_pool else st.store),
+                    "leaf_voxels": int(fs.voxels), "feature_rows": int(fs.feature_rows),
+                    "feature_bytes": int(fs.feature_rows) * self.static.feature_dim * 4,
+                    "free_dropped": int(fs.free_dropped), "carved": int(fs.carved),
+                    "points_filtered": int(fs.points_filtered), "points_void": int(fs.points_void),
+                    "voxels_free": int(fs.voxels_free), "voxels_void": int(fs.voxels_void),
+                    "voxels_raised": int(fs.voxels_raised),
+                    "feature_capacity": int(st.feature_table.shape[0]),
+                    "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
+            self.timings.append(info)
+            # (the mask is not in the timings: a per-point mask per frame would bloat timing.json and the checkpoints)
+            self._unreported.append((info, None if device else np.asarray(fs.kept)[:tag["n"]]))
 
     def reset(self) -> None:
         """Forget the map: an empty state of the current capacities (so the compiled frame program is
         reused), frame 0, the origin set again by the next frame. The timings are kept."""
         caps = core.Capacities.of(self.state)
         self.state = None  # the old arrays go before the new ones are allocated
-        self.state = core.init_state(self.static, self.cfg, caps)
+        self.state = _init_state(self.static, self.cfg, caps)
         self.frames = 0
         self._origin = core.origin_world(self.static, self.state)
 
@@ -177,6 +254,11 @@ class N3Mapper:
         return np.asarray(self.state.voxel_coord[:n])[void]
 
     @property
+    def bucket(self) -> int:
+        """The padded scan size (rows) chosen so far (`scan.bucket_for`; 0 before the first frame)."""
+        return self._bucket
+
+    @property
     def origin(self) -> np.ndarray:
         """[3] float64 world position of the map frame."""
         return self._origin
@@ -214,11 +296,17 @@ class N3Mapper:
         return {"snapshot_fn": lambda: copy_arrays((self.static, self.state)),
                 "mesh_fn": lambda s: extract_mesh_of(*s, res, mcf)}
 
-    def save(self, path: str, background: bool = False) -> None:
-        """Checkpoint to directory `path`; `background`: write in a thread (see n3.checkpoint)."""
+    def save(self, path: str, background: bool = False, copy: bool = True) -> None:
+        """Checkpoint to directory `path` once the frames submitted are in; `background`: written in a
+        thread, from a copy of the state taken on the device (the next frames map meanwhile), or with
+        copy=False from the state itself: then nothing may change the map until the save is written
+        (`n3.checkpoint.wait_for_saves`; the end of a run, while it is meshed)."""
         from jaxmap.n3.checkpoint import save_state, save_state_async
 
-        (save_state_async if background else save_state)(path, self.cfg, self.state, self.timings)
+        if background:
+            save_state_async(path, self.cfg, self.state, self.timings, copy=copy)
+        else:
+            save_state(path, self.cfg, self.state, self.timings)
 
     @classmethod
     def load(cls, path: str) -> "N3Mapper":
@@ -226,6 +314,18 @@ class N3Mapper:
 
         cfg, state, timings = load_state(path)
         return cls(cfg, state, timings)
+
+
+def origin_at(cfg: MapConfig, pose) -> np.ndarray:
+    """[3] float64 world position of the map frame of a map whose first frame is at `pose` [4, 4]
+    (`N3Mapper.place_origin`'s, computed on the host before the map exists)."""
+    static = core.N3Static.from_config(cfg)
+    return core.origin_vox_for(static, _first_position(pose)) * static.leaf
+
+
+def _first_position(pose) -> np.ndarray:
+    validate_pose(pose, "pose of frame 0")
+    return np.asarray(pose, np.float64)[:3, 3]
 
 
 def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bool, float]:

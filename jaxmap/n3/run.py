@@ -14,6 +14,8 @@ A run directory holds:
 """
 from __future__ import annotations
 
+import collections
+import dataclasses
 import functools
 import logging
 import os
@@ -30,81 +32,141 @@ from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import dynamic
 from jaxmap.n3 import checkpoint, scan
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
-from jaxmap.n3.mapper import N3Mapper
+from jaxmap.n3.mapper import N3Mapper, origin_at
+from jaxmap.preprocess_device import resolve
 
 log = logging.getLogger("jaxmap")
 
 
 def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress: bool = True,
-                 mapper=None, evaluate: bool = True, mesh: bool = True, view: dict | None = None) -> dict:
+                 evaluate: bool = True, mesh: bool = True, view: dict | None = None) -> dict:
     """Map cfg.data.path into out_dir; returns a summary dict (paths, metrics, timings).
 
-    Frames are read and preprocessed one or two ahead in a background thread (`frame_loop.Prefetcher`),
-    so the device maps frame i while the host prepares frame i + 1. `wall_s` in the summary is
+    Frames are read, preprocessed and uploaded ahead in background threads (`frame_loop.Prefetcher`,
+    from the start, while the frame program compiles), and each frame's program is dispatched before
+    the previous one's statistics are read (`MapSteps`), so the device maps frame after frame while the
+    host prepares the next ones and keeps the books. `wall_s` in the summary is
     the wall-clock time of the mapping loop, compilation and checkpoints included: what a user waits.
     resume: continue from the newest intact checkpoint in out_dir (`resume_mapper`). Ctrl-C and SIGTERM
     (in the main thread) stop the loop after the frame being mapped, save a checkpoint and re-raise
     (`jaxmap.rundir.Interrupted`). The caller owns out_dir (`jaxmap.rundir.claim` in the CLI).
     """
     os.makedirs(out_dir, exist_ok=True)
+    cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))  # device: auto decided (config.yaml says which)
+    device = cfg.preprocess.device == "true"
     ckpt = os.path.join(out_dir, "checkpoint")
     t_start = time.perf_counter()
     n_compiles = len(COMPILE_SECONDS)
     seq = open_run_sequence(cfg)
+    labeller = dynamic.labeller_for(cfg.data.path)
+    scores = dynamic.PointScores() if labeller is not None else None
     if resume:
         mapper = resume_mapper(out_dir, cfg)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
-    else:
-        if mapper is None:
-            first = seq.frame(0) if len(seq) else None
-            mapper = N3Mapper(cfg, first_scan=(first.points, first.pose) if first is not None else None)
-        elif scan.needs_layout(mapper.cfg) and mapper.frames == 0 and len(seq):
+        if mapper.frames == 0 and len(seq):
             mapper.fix_layout(seq.frame(0).points)
-        cfg = mapper.cfg  # with the range-image layout read off the first scan
+            mapper.place_origin(seq.frame(0).pose)
+        cfg = mapper.cfg
+        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(cfg, labeller),
+                            then=scan.Uploader(mapper.origin, device, mapper.bucket))
+    else:
+        # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
+        # is the first pose's, and the first prepared frame gives the program its shapes.
+        first = seq.frame(0) if len(seq) else None
+        if first is not None:
+            cfg = scan.resolve_layout(cfg, first.points)  # the range-image layout read off the first scan
+        origin = origin_at(cfg, first.pose) if first is not None else np.zeros(3)
+        frames = Prefetcher(seq, 0, len(seq), _loader(cfg, labeller), then=scan.Uploader(origin, device))
+        try:
+            mapper = N3Mapper(cfg, first_frame=frames.first())
+        except BaseException:
+            frames.close()
+            raise
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     start = mapper.frames
-    labeller = dynamic.labeller_for(cfg.data.path)
-    scores = dynamic.PointScores() if labeller is not None else None
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
                         every=max(cfg.checkpoint_every, 1), busy=checkpoint.saving, wait=checkpoint.wait_for_saves,
-                        resume=f"jaxmap map --resume {out_dir}")
+                        resume=f"jaxmap map --resume {out_dir}",
+                        final=lambda: mapper.save(ckpt, background=True, copy=False))
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    load = functools.partial(prepare_frame, cfg.preprocess, image=mapper.static.evidence, label=labeller)
-    loop = run_frames(Prefetcher(seq, start, len(seq), load), functools.partial(map_frame, mapper, scores=scores),
-                      total=len(seq), start=start, progress=bar, viewer=viewer, checkpoints=saves, t_start=t_start)
+    loop = run_frames(frames, MapSteps(mapper, scores), total=len(seq), start=start, progress=bar, viewer=viewer,
+                      checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
-                      point_scores=scores.result(dynamic.voxel_keys(mapper.void_voxels())) if scores is not None else None)
+                      point_scores=scores.result(dynamic.voxel_keys(mapper.void_voxels())) if scores is not None else None,
+                      wait_saves=checkpoint.wait_for_saves)
 
 
-def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None) -> Frame:
+def _loader(cfg: MapConfig, label=None, poses=None):
+    """The `Prefetcher` loader of a run of `cfg` (`prepare_frame`, with the range images the map needs)."""
+    from jaxmap.n3.state import N3Static
+
+    evidence = N3Static.from_config(cfg).evidence
+    return functools.partial(prepare_frame, cfg.preprocess, image=evidence, label=label, poses=poses)
+
+
+def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None, poses=None) -> Frame:
     """`Prefetcher` loader of frame i: read, checked and preprocessed on the host, with its range image
-    when `image` (with `preprocess.device` only read and checked: the frame program preprocesses, and
-    `normals` is None). label: a `jaxmap.metrics.dynamic.Labeller` (the sequence has moving objects):
-    `dynamic` labels its points here, in the prefetch thread, off the mapping loop."""
+    when `image` (with `preprocess.device` true only read and checked: the frame program preprocesses,
+    and `normals` is None); at poses[i] when `poses` [N, 4, 4] is given, else at the sequence's pose.
+    label: a `jaxmap.metrics.dynamic.Labeller` (the sequence has moving objects): `dynamic` labels its
+    points here, in the prefetch thread, off the mapping loop."""
     fr = seq.frame(i)
+    pose = fr.pose if poses is None else poses[i]
     img = None
-    if cfg_preprocess.device:
-        (pts, pose), nrm = scan.check_frame(fr.points, fr.pose, i), None
+    if cfg_preprocess.device == "true":
+        (pts, pose), nrm = scan.check_frame(fr.points, pose, i), None
     else:
-        pts, nrm, pose, img = scan.preprocess(fr.points, fr.pose, cfg_preprocess, i, image=image)
+        pts, nrm, pose, img = scan.preprocess(fr.points, pose, cfg_preprocess, i, image=image)
     return Frame(i, int(fr.index), pts, pose, nrm, img,
                  dynamic=label(pts, pose, int(fr.index)) if label is not None else None)
 
 
-def map_frame(mapper: N3Mapper, frame: Frame, scores: dynamic.PointScores | None = None) -> tuple[dict, np.ndarray]:
-    """The N3 step of the frame loop: the prepared frame into the map, at its pose; with `scores`, its
-    labelled points counted against those the mapper trained on (its record's "kept", [M] bool over the
-    rows of frame.points; all when it does not say) and by leaf voxel (the final map says which are void).
-    "kept" leaves the record (which goes to timing.json)."""
-    info = mapper.add_frame(None, None, prepared=(frame.points, frame.normals, frame.pose, frame.image))
-    kept = info.pop("kept", None)
-    if scores is not None and frame.dynamic is not None:
-        scores.add(frame.dynamic, kept, dynamic.voxel_keys(mapper.voxel_coords(frame.points, frame.pose)))
-    return info, frame.pose
+def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
+    """A new N3 map of every frame of `seq` at `poses` [N, 4, 4] (instead of the sequence's), the frames
+    read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
+    (no checkpoints). Returns (N3Mapper, frame_loop.LoopResult)."""
+    cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))
+    if len(seq):
+        cfg = scan.resolve_layout(cfg, seq.frame(0).points)
+    mapper = N3Mapper(cfg)
+    if len(seq):
+        mapper.place_origin(poses[0])
+    frames = Prefetcher(seq, 0, len(seq), _loader(cfg, poses=poses),
+                        then=scan.Uploader(mapper.origin, cfg.preprocess.device == "true"))
+    return mapper, run_frames(frames, MapSteps(mapper), total=len(seq), progress=Progress(desc, progress))
+
+
+class MapSteps:
+    """The N3 step of the frame loop (`frame_loop.Steps`): each frame's program is dispatched as soon as
+    its scan is on the device (`N3Mapper.submit`; the scan was prepared and uploaded ahead by
+    `prepare_frame` and `scan.Uploader`), its record comes back a frame later. With `scores`, each
+    frame's labelled points are counted against those the mapper trained on."""
+
+    def __init__(self, mapper: N3Mapper, scores: dynamic.PointScores | None = None):
+        self.mapper, self.scores = mapper, scores
+        self._frames: collections.deque[Frame] = collections.deque()  # submitted, record not back yet
+
+    def submit(self, frame: Frame) -> list:
+        self._frames.append(frame)
+        return self._paired(self.mapper.submit(frame.batch, points=len(frame.points), prepare_s=frame.prepare_s,
+                                               wait_s=frame.wait_s))
+
+    def drain(self) -> list:
+        return self._paired(self.mapper.finish())
+
+    def _paired(self, finished: list) -> list:
+        out = []
+        for record, kept in finished:
+            frame = self._frames.popleft()
+            if self.scores is not None and frame.dynamic is not None:
+                self.scores.add(frame.dynamic, kept,
+                                dynamic.voxel_keys(self.mapper.voxel_coords(frame.points, frame.pose)))
+            out.append((frame, record, frame.pose))
+        return out
 
 
 def city_config_path() -> str | None:

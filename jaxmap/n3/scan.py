@@ -2,13 +2,15 @@
 
 Preprocessing (crop, downsample, PCA normals; numpy/scipy) is ~0.2 s per city scan on 2 cores;
 `jaxmap map` runs it for the next frames in the frame loop's prefetch thread (`jaxmap.n3.run.prepare_frame`,
-`jaxmap.frame_loop.Prefetcher`), off the critical path (numpy and scipy's k-d tree release the GIL).
+`jaxmap.frame_loop.Prefetcher`), off the critical path (numpy and scipy's k-d tree release the GIL),
+and then, in order, pads each scan, moves it to the map frame and uploads it (`Uploader`).
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
 
+import jax
 import numpy as np
 
 from jaxmap.errors import DataError
@@ -53,9 +55,10 @@ def preprocess(points_s, pose, cfg_preprocess, frame: int, image: bool = False):
 
 
 def needs_layout(cfg) -> bool:
-    """Whether a MapConfig still has to read its range-image layout off a scan (veil filter or free-space
-    evidence on, `preprocess.image_rows` 0)."""
-    return (cfg.evidence.enabled or cfg.preprocess.veil_m > 0) and cfg.preprocess.image_rows == 0
+    """Whether a MapConfig still has to read its range-image layout off a scan (veil filter, free-space
+    evidence or range-image normals on, `preprocess.image_rows` 0)."""
+    p = cfg.preprocess
+    return (cfg.evidence.enabled or p.veil_m > 0 or p.normals == "range_image") and p.image_rows == 0
 
 
 def resolve_layout(cfg, points_s, frame: int = 0):
@@ -111,3 +114,22 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
     out_p[n:], out_n[n:] = sensor + 1.0, (0.0, 0.0, 1.0)
     rot = T_m_s.rotation().matrix.astype(np.float32) if image is not None else None
     return ScanBatch(out_p, out_n, np.arange(bucket) < n, sensor, rot, image)
+
+
+class Uploader:
+    """The last stage of reading ahead (`frame_loop.Prefetcher(then=...)`, one thread, frames in order):
+    a prepared frame's scan padded to its bucket (the one of the scans before it while it fits:
+    `bucket_for`), in the map frame at `origin_w` [3] float64, put on the device as the frame's `batch`
+    (a ScanBatch with the frame's range image if it has one, or with `raw` a RawScan the frame program
+    preprocesses). `bucket`: the bucket so far."""
+
+    def __init__(self, origin_w: np.ndarray, raw: bool, bucket: int = 0):
+        self.origin_w, self.raw, self.bucket = np.asarray(origin_w, np.float64), raw, bucket
+
+    def __call__(self, frame):
+        self.bucket = bucket_for(len(frame.points), self.bucket)
+        if self.raw:
+            batch = to_raw(frame.points, frame.pose, self.origin_w, self.bucket)
+        else:
+            batch = to_batch(frame.points, frame.normals, frame.pose, self.origin_w, self.bucket, frame.image)
+        return dataclasses.replace(frame, batch=jax.device_put(batch))

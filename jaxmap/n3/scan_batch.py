@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxmap.geometry import SE3
 from jaxmap.n3.state import N3Static
 from jaxmap.preprocess_device import crop_mask, preprocess_scan, voxel_keep
 from jaxmap.range_image import min_range_image_jax, veil_keep
@@ -48,9 +49,8 @@ def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, 
         raw_valid = raw_valid & veil_keep(raw.points, static.image, cfg.veil_m, valid=raw_valid, xp=jnp)
     image = min_range_image_jax(raw.points, raw_valid, static.image) if static.evidence else None
     pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw_valid, cfg, rows)
-    # Elementwise, not a matmul: a GPU's float32 matmul may round through TF32 (centimetres at 20 m).
-    pts = jnp.sum(pts_s[:, None, :] * raw.rotation[None], axis=-1) + raw.translation
-    nrm = jnp.sum(nrm_s[:, None, :] * raw.rotation[None], axis=-1)
+    T_m_s = SE3.from_rotation_and_translation(raw.rotation, raw.translation)  # (full float32 on a GPU: `geometry`)
+    pts, nrm = T_m_s.apply(pts_s), T_m_s.rotation().apply(nrm_s)
     pts = jnp.where(valid[:, None], pts, raw.translation + 1.0)
     nrm = jnp.where(valid[:, None], nrm, np.array([0.0, 0.0, 1.0], np.float32))
     return (ScanBatch(pts, nrm, valid, raw.translation, raw.rotation if static.evidence else None, image), kept,

@@ -71,6 +71,7 @@ class N3Static:
     mask_level: int
     min_leaf_corners: int
     preprocess: object = None   # the PreprocessConfig when scans are preprocessed inside the frame program
+    #                             (preprocess.device true, or auto on a GPU: `preprocess_device.resolve`)
     evidence: bool = False      # free-space evidence per voxel (`jaxmap.n3.evidence`)
     evidence_margin: float = 0.1
     void_frames: int = 2
@@ -85,6 +86,7 @@ class N3Static:
     def from_config(cls, cfg) -> "N3Static":
         g, s, t, w, m = cfg.grid, cfg.sampling, cfg.train, cfg.window, cfg.mesh
         leaf = float(g.leaf_vox_size)
+        on_device = _on_device(cfg.preprocess)
         return cls(
             leaf=leaf, levels=g.feature_levels, feature_dim=g.feature_dim, hidden_dim=cfg.decoder.hidden_dim,
             hidden_layers=cfg.decoder.hidden_layers, label_mode=s.label_mode, trunc=s.surface_sample_range_m,
@@ -100,11 +102,11 @@ class N3Static:
             block_policy=w.block_policy, pairs_per_frame=w.pairs_per_frame,
             radius_vox=int(math.ceil(cfg.preprocess.max_range_m / leaf)), max_load=g.max_load,
             mask_level=m.mask_level, min_leaf_corners=m.min_leaf_corners,
-            preprocess=cfg.preprocess if cfg.preprocess.device else None,
+            preprocess=on_device,
             evidence=cfg.evidence.enabled and cfg.preprocess.image_rows > 0, evidence_margin=cfg.evidence.margin_m,
             void_frames=cfg.evidence.void_frames, raise_pairs=cfg.evidence.raise_pairs,
             evidence_range=cfg.evidence.max_range_m,
-            image=layout_of(cfg.preprocess) if cfg.evidence.enabled or cfg.preprocess.device else None,
+            image=layout_of(cfg.preprocess) if cfg.evidence.enabled or on_device is not None else None,
         )
 
     @property
@@ -115,6 +117,14 @@ class N3Static:
     def uses_pool(self) -> bool:
         """The replay / keyframe ablations keep a flat pool of pairs instead of per-voxel blocks."""
         return self.window_mode in ("replay", "keyframe")
+
+
+def _on_device(p):
+    """The PreprocessConfig of a frame program that preprocesses its scans itself, else None (the host does)."""
+    from jaxmap.preprocess_device import resolve
+
+    p = resolve(p)
+    return p if p.device == "true" else None
 
 
 @flax.struct.dataclass
@@ -214,9 +224,14 @@ def init_state(static: N3Static, cfg, caps: Capacities) -> N3State:
 
 def set_origin(static: N3Static, state: N3State, sensor_world: np.ndarray) -> N3State:
     """Map origin at the sensor position (world, metres), snapped to the coarsest voxel level."""
+    return state.replace(origin_vox=jnp.asarray(origin_vox_for(static, sensor_world)))
+
+
+def origin_vox_for(static: N3Static, sensor_world: np.ndarray) -> np.ndarray:
+    """[3] int32: `set_origin`'s map origin in leaf voxels (world = map + origin_vox * leaf), on the host."""
     coarse = 1 << (static.levels - 1)
     k = np.round(np.asarray(sensor_world, np.float64) / (static.leaf * coarse))
-    return state.replace(origin_vox=jnp.asarray(k * coarse, jnp.int32))
+    return (k * coarse).astype(np.int32)
 
 
 def origin_world(static: N3Static, state: N3State) -> np.ndarray:

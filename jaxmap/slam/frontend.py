@@ -118,8 +118,9 @@ class FrontEnd:
         return moved or (cfg.keyframe_min_rotation_deg > 0 and np.degrees(ang) >= cfg.keyframe_min_rotation_deg)
 
     # ---------------------------------------------------------------------------------------------
-    def add_frame(self, points_s: np.ndarray, refine=None) -> FrameResult:
-        """Process the next scan. points_s: [N,3] float32, sensor frame. Returns a FrameResult.
+    def add_frame(self, points_s: np.ndarray, refine=None, scan=None) -> FrameResult:
+        """Process the next scan. points_s: [N,3] float32, sensor frame. Returns a FrameResult. scan: the
+        odometry's `Scan(points_s, cfg.odometry)` (downsampled points and normals) if made ahead.
 
         refine: None, or fn(pose guess [4,4]) -> a better pose [4,4] or None (keep the guess), called
         after the odometry step and before the keyframe decision (e.g. tracking against a map): the
@@ -129,7 +130,7 @@ class FrontEnd:
         index = len(self.frame_ref)
         timings = {"odometry_s": 0.0, "loop_s": 0.0, "optimize_s": 0.0}
         t0 = time.perf_counter()
-        step = self.odometry.step(points_s)
+        step = self.odometry.step(points_s, scan)
         timings["odometry_s"] = time.perf_counter() - t0
         rel = self.odometry.velocity.copy()
         pose, refined = step.pose, False

@@ -81,10 +81,11 @@ class KissOdometry:
         self.last: Scan | None = None
         self.n_frames = 0
 
-    def step(self, points_s: np.ndarray) -> OdomStep:
-        """Register the next scan. points_s: [N,3] float, sensor frame. Returns an OdomStep."""
+    def step(self, points_s: np.ndarray, scan: Scan | None = None) -> OdomStep:
+        """Register the next scan. points_s: [N,3] float, sensor frame; scan: `Scan(points_s, cfg)` if made
+        already (in a prefetch thread). Returns an OdomStep."""
         cfg = self.cfg
-        scan = Scan(points_s, cfg)
+        scan = Scan(points_s, cfg) if scan is None else scan
         frame = self.n_frames
         self.n_frames += 1
         self.last = scan

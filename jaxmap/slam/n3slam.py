@@ -34,6 +34,7 @@ from jaxmap.geometry import compose
 from jaxmap.n3 import scan
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.slam.frontend import FrontEnd
+from jaxmap.slam.odometry_common import Scan
 
 log = logging.getLogger("jaxmap")
 
@@ -49,18 +50,24 @@ def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
 
 @dataclasses.dataclass(frozen=True)
 class SlamFrame(Frame):
-    """A frame of the N3 SLAM loop: `points` as read (for the front end and the tracker), `prepared`
-    = (points, normals) as the N3 map's preprocessing leaves them (sensor frame), `image` the scan's range
-    image (the map's free-space evidence; None when it is off)."""
+    """A frame of a SLAM loop, its host work done in the prefetch threads: `points` as read (for the
+    front end and the tracker), `prepared` the map's preprocessing of it (N3: (points, normals) sensor
+    frame, and `image` the scan's range image for the map's free-space evidence, None when it is off; the
+    latent map: `ImtMapper.prepare`'s HostScan; None: not made ahead), `odometry_scan` the odometry's
+    (`slam.odometry_common.Scan`: downsampled points and normals at two levels)."""
 
     prepared: tuple | None = None
+    odometry_scan: object = None
 
 
-def prepare_slam_frame(cfg_preprocess, seq, i: int, image: bool = False) -> SlamFrame:
-    """`Prefetcher` loader: the frame as read, and its N3-preprocessed points and normals (and range image)."""
+def prepare_slam_frame(cfg: SlamConfig, cfg_preprocess, seq, i: int, image: bool = False) -> SlamFrame:
+    """`Prefetcher` loader: the frame as read, its N3-preprocessed points and normals (and range image),
+    and the odometry's scan, each made once, off the main thread."""
     fr = seq.frame(i)
     pts, nrm, _, img = scan.preprocess(fr.points, np.eye(4), cfg_preprocess, i, image=image)
-    return SlamFrame(i, int(fr.index), scan.clean_points(fr.points, i), fr.pose, image=img, prepared=(pts, nrm))
+    raw = scan.clean_points(fr.points, i)
+    return SlamFrame(i, int(fr.index), raw, fr.pose, image=img, prepared=(pts, nrm),
+                     odometry_scan=Scan(raw, cfg.frontend.odometry))
 
 
 def default_tracker(min_valid_fraction: float):
@@ -114,7 +121,7 @@ class N3SlamStep:
             pts = frame.prepared[0]
             if self.cfg.n3_track_max_range_m > 0:
                 pts = pts[np.linalg.norm(pts, axis=1) <= self.cfg.n3_track_max_range_m]
-            r = self.fe.add_frame(frame.points, refine=self._refine(pts))
+            r = self.fe.add_frame(frame.points, refine=self._refine(pts), scan=frame.odometry_scan)
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
             self.prepared.append(frame.prepared)
             self.images.append(frame.image)
@@ -175,7 +182,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     if track is None and cfg.n3_track:
         track = default_tracker(cfg.n3_track_min_valid)
     step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
-    load = lambda s, i: prepare_slam_frame(mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
+    load = lambda s, i: prepare_slam_frame(cfg, mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
     loop = run_frames(Prefetcher(seq, 0, len(seq), load), step, total=len(seq), progress=bar, viewer=viewer)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
@@ -186,8 +193,11 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
 def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
     """The run's N3 map (config in out_dir/n3_config.yaml's place: the caller saves it)."""
     mcfg = n3_map_config(cfg, out_dir)
-    if mcfg.preprocess.device:
-        raise JaxmapError(f"{cfg.n3_config}: preprocess.device=true is not supported by jaxmap slam; set it to false")
+    if mcfg.preprocess.device == "true":
+        raise JaxmapError(f"{cfg.n3_config}: preprocess.device=true is not supported by jaxmap slam; set it to false "
+                          "or auto")
+    # the tracker reads the map's preprocessed points on the host: auto is the host here
+    mcfg = dataclasses.replace(mcfg, preprocess=dataclasses.replace(mcfg.preprocess, device="false"))
     first = seq.frame(0) if len(seq) else None
     return N3Mapper(mcfg, first_scan=(first.points, first.pose) if first is not None else None)
 

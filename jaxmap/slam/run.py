@@ -27,6 +27,7 @@ after each pose-graph optimisation), the loop closures and a mesh re-extracted i
 """
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -42,9 +43,9 @@ from jaxmap.frame_loop import Frame, LoopResult, Prefetcher, Progress, open_run_
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
-from jaxmap.n3.mapper import N3Mapper
 from jaxmap.slam.frontend import FrontEnd
-from jaxmap.slam.n3slam import n3_checkpoint, n3_map_config, open_n3_mapper, run_n3_frontend
+from jaxmap.slam.n3slam import SlamFrame, n3_checkpoint, n3_map_config, open_n3_mapper, run_n3_frontend
+from jaxmap.slam.odometry_common import Scan
 from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_trajectory
 
 log = logging.getLogger("jaxmap")
@@ -60,16 +61,17 @@ class FrontEndStep:
         self.loops: list[dict] = []
         self.odometry: list[np.ndarray] = []   # odometry alone: the chain of frame-to-frame motions
 
-    def __call__(self, frame: Frame) -> tuple[dict, np.ndarray]:
+    def __call__(self, frame: SlamFrame) -> tuple[dict, np.ndarray]:
         mapper = self.mapper
         try:
-            r = self.fe.add_frame(frame.points)
+            r = self.fe.add_frame(frame.points, scan=frame.odometry_scan)
             # the odometry's own motion of the step just made, which loop corrections do not touch (a front
             # end that does not report it: its odometry's velocity)
             rel = r.odometry_rel if r.odometry_rel is not None else self.fe.odometry.velocity
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], rel))
             if r.is_keyframe:
-                mapper.add_frame(frame.points, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end")
+                mapper.add_frame(frame.points, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end",
+                                 prepared=frame.prepared)
                 if r.optimized:
                     self.loops.append(_close_loop(self.cfg, mapper, r.keyframe_poses, self.out_dir, len(self.loops),
                                                   {"frame": frame.index, "keyframe": int(r.keyframe_id),
@@ -88,12 +90,23 @@ class FrontEndStep:
         return record, r.pose
 
 
+def prepare_frontend_frame(cfg: SlamConfig, mapper, seq, i: int) -> SlamFrame:
+    """`Prefetcher` loader of the front end's frames: read, the odometry's scan prepared and, when every
+    frame is a keyframe, the map's preprocessing too (else the keyframes' is done as they are decided)."""
+    fr = seq.frame(i)
+    fe = cfg.frontend
+    every = fe.keyframe_every <= 1 and fe.keyframe_min_translation_m <= 0 and fe.keyframe_min_rotation_deg <= 0
+    return SlamFrame(i, int(fr.index), fr.points, fr.pose, prepared=mapper.prepare(fr.points) if every else None,
+                     odometry_scan=Scan(fr.points, fe.odometry))
+
+
 def run_frontend(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, viewer=None) -> dict:
     """Our own front end drives the map. Returns trajectories and per-loop records.
     viewer: a `jaxmap.viewer.ViewerHooks` shown every frame (None = no viewer)."""
     step = FrontEndStep(cfg, seq, out_dir, mapper, viewer)
     bar = Progress("slam", progress, postfix=lambda r: {"kf": r["kf"], "loops": r["loops"], "ok": r["ok"]})
-    run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq), progress=bar, viewer=viewer)
+    frames = Prefetcher(seq, 0, len(seq), functools.partial(prepare_frontend_frame, cfg, mapper))
+    run_frames(frames, step, total=len(seq), progress=bar, viewer=viewer)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
             "keyframe_frames": list(mapper.store.frames)}
 
@@ -182,15 +195,22 @@ class SnapshotStep:
         while self.applied == 0 or len(self.snapshots[self.applied - 1][1]) <= k:
             self._apply(self.applied)
         pose = self.snapshots[self.applied - 1][1][k]
-        return self.mapper.add_frame(frame.points, pose, frame=frame.index), pose
+        return self.mapper.add_frame(frame.points, pose, frame=frame.index, prepared=frame.prepared), pose
+
+
+def prepare_snapshot_frame(mapper, seq, i: int) -> SlamFrame:
+    """`Prefetcher` loader when pose snapshots drive the map: read, and the map's preprocessing of it (its
+    pose, and so its cells, is known only when its snapshot is applied)."""
+    fr = seq.frame(i)
+    return SlamFrame(i, int(fr.index), fr.points, fr.pose, prepared=mapper.prepare(fr.points))
 
 
 def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = True, viewer=None) -> dict:
     """Pose snapshots of another SLAM system drive the map (see the module docstring)."""
     step = SnapshotStep(read_snapshots(cfg.external_poses, len(seq)), mapper)
     total = len(step.snapshots[-1][1])
-    run_frames(Prefetcher(seq, 0, total), step, total=total, progress=Progress("slam (external poses)", progress),
-               viewer=viewer)
+    run_frames(Prefetcher(seq, 0, total, functools.partial(prepare_snapshot_frame, mapper)), step, total=total,
+               progress=Progress("slam (external poses)", progress), viewer=viewer)
     poses = step.finish()
     return {"trajectory": poses, "odometry": None, "loops": step.updates, "keyframe_frames": list(mapper.store.frames)}
 
@@ -269,17 +289,12 @@ def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarra
 def n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool, desc: str = "optimised poses") -> dict:
     """The N3 map of the same frames at `poses` [N,4,4] (the optimised ones in `run_slam`) (written as a KITTI pose file beside a
     symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
-    ncfg = n3_map_config(cfg, out_dir)
+    from jaxmap.n3.run import map_at_poses
+
     os.makedirs(out_dir, exist_ok=True)
-    save_config(ncfg, os.path.join(out_dir, "config.yaml"))
-    mapper = N3Mapper(ncfg)
-
-    def step(frame: Frame):
-        return mapper.add_frame(frame.points, poses[frame.position]), poses[frame.position]
-
-    loop = run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
-                      progress=Progress(f"n3 ({desc})", progress))
-    return finish_run(mapper, ncfg, out_dir, loop)
+    mapper, loop = map_at_poses(n3_map_config(cfg, out_dir), seq, poses, progress, f"n3 ({desc})")
+    save_config(mapper.cfg, os.path.join(out_dir, "config.yaml"))
+    return finish_run(mapper, mapper.cfg, out_dir, loop)
 
 
 def _jsonable(x):

@@ -40,7 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.geometry import orthonormalize
+from jaxmap.geometry import einsum, matmul, orthonormalize
 from jaxmap.n3.query import query
 from jaxmap.n3.state import N3State, N3Static, origin_world
 
@@ -90,13 +90,13 @@ class Refined(NamedTuple):
 
 def so3_exp(w):
     """Rotation matrix [3, 3] of an axis-angle vector w [3] (Rodrigues, safe at 0)."""
-    th2 = jnp.dot(w, w)
+    th2 = jnp.sum(w * w)
     small = th2 < 1e-8
     th = jnp.sqrt(jnp.where(small, 1.0, th2))
     a = jnp.where(small, 1.0 - th2 / 6.0, jnp.sin(th) / th)
     b = jnp.where(small, 0.5 - th2 / 24.0, (1.0 - jnp.cos(th)) / jnp.where(small, 1.0, th2))
     K = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]], w.dtype)
-    return jnp.eye(3, dtype=w.dtype) + a * K + b * (K @ K)
+    return jnp.eye(3, dtype=w.dtype) + a * K + b * matmul(K, K)
 
 
 def gm_weight(r, k):
@@ -115,7 +115,7 @@ def gm_cost(r, valid, mask, k):
 
 def _residuals(sdf_fn, points, R, t, grad: bool):
     """(r [M], valid [M], d r / d x [M, 3] or None) at x = R p + t."""
-    x = points @ R.T + t
+    x = matmul(points, R.T) + t
     if not grad:
         r, valid = sdf_fn(x)
         return jnp.where(jnp.isfinite(r), r, 0.0), valid & jnp.isfinite(r), None
@@ -131,13 +131,13 @@ def _lm_step(sdf_fn, points, mask, opts: TrackOptions, carry):
     k = jnp.maximum(opts.kernel_m, opts.kernel_start_m * opts.kernel_decay ** i.astype(jnp.float32))
     r, valid, g = _residuals(sdf_fn, points, R, t, grad=True)
     w = jnp.where(mask & valid, gm_weight(r, k), 0.0)
-    J = jnp.concatenate([jnp.cross(points @ R.T, g), g], axis=1)          # [M, 6]: d r / d (omega, v)
-    H = (J * w[:, None]).T @ J
-    b = J.T @ (w * r)
+    J = jnp.concatenate([jnp.cross(matmul(points, R.T), g), g], axis=1)   # [M, 6]: d r / d (omega, v)
+    H = matmul((J * w[:, None]).T, J)
+    b = matmul(J.T, w * r)
     A = H + lam * (jnp.diag(jnp.diag(H)) + 1e-6 * jnp.eye(6))
     delta = -jnp.linalg.solve(A, b)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
-    R2, t2 = so3_exp(delta[:3]) @ R, t + delta[3:]
+    R2, t2 = matmul(so3_exp(delta[:3]), R), t + delta[3:]
     r2, valid2, _ = _residuals(sdf_fn, points, R2, t2, grad=False)
     better = gm_cost(r2, valid2, mask, k) <= gm_cost(r, valid, mask, k)
     small = jnp.maximum(jnp.linalg.norm(delta[3:]), 10.0 * jnp.linalg.norm(delta[:3])) < opts.step_tol_m
@@ -166,8 +166,8 @@ def grid_search(sdf_fn, points_s, mask, R, t, search, opts: TrackOptions):
     k = min(opts.search_points, points_s.shape[0])
     shifts, yaws = (jnp.asarray(g) for g in search_grid(opts))
     shifts, yaws = shifts * search[0], yaws * search[1]
-    Rs = jax.vmap(lambda y: so3_exp(jnp.array([0.0, 0.0, 1.0]) * y) @ R)(yaws)           # [S, 3, 3]
-    x = jnp.einsum("sij,kj->ski", Rs, points_s[:k]) + (t + shifts)[:, None]
+    Rs = jax.vmap(lambda y: matmul(so3_exp(jnp.array([0.0, 0.0, 1.0]) * y), R))(yaws)    # [S, 3, 3]
+    x = einsum("sij,kj->ski", Rs, points_s[:k]) + (t + shifts)[:, None]
     r, valid = sdf_fn(x.reshape(-1, 3))
     r, valid = r.reshape(len(yaws), k), valid.reshape(len(yaws), k)
     finite = jnp.isfinite(r)
