@@ -111,8 +111,12 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
         kept = np.arange(len(w)) % 7 != 0
         counts += [(~dyn).sum(), (~dyn & kept).sum(), dyn.sum(), (dyn & ~kept).sum()]
     assert counts[2] > 100  # (the cars are in these frames)
-    assert [got["static_points"], got["static_kept"], got["dynamic_points"], got["dynamic_removed"]] == list(counts)
-    assert got["frames"] == 4 and got["sa_percent"] == pytest.approx(100 * counts[1] / counts[0])
+    tr = got["trained"]  # the trained-on sense: the points the mapper trained on
+    assert [tr["static_points"], tr["static_kept"], tr["dynamic_points"], tr["dynamic_removed"]] == list(counts)
+    assert got["frames"] == 4 and tr["sa_percent"] == pytest.approx(100 * counts[1] / counts[0])
+    # the headline is the map's sense (a point is removed when its voxel is void in the final map): the
+    # same points, counted by voxel
+    assert got["sense"] == "map" and [got["static_points"], got["dynamic_points"]] == [counts[0], counts[2]]
     # `jaxmap eval` shows the run's scores beside its metrics, for the data the run mapped only
     capsys.readouterr()
     assert main(["eval", str(out / "mesh.ply"), "--gt", str(small_parking_city), "--samples", "20000",

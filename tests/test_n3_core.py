@@ -38,17 +38,18 @@ def test_pure_integrate_and_train_give_the_facades_state():
     for pts, pose in frames:
         m.add_frame(pts, pose)
 
+    cfg = m.cfg  # with the range-image layout the mapper read off the first scan (the evidence's images)
     static = core.N3Static.from_config(cfg)
     state = core.init_state(static, cfg, core.capacities_for(static, cfg))
     integrate = jax.jit(functools.partial(core.integrate, static))
     train = jax.jit(functools.partial(core.train, static))
     bucket = 0
     for i, (pts, pose) in enumerate(frames):
-        p, n, pose = scan.preprocess(pts, pose, cfg.preprocess, i)[:3]
+        p, n, pose, img = scan.preprocess(pts, pose, cfg.preprocess, i, image=static.evidence)
         if i == 0:
             state = core.set_origin(static, state, pose[:3, 3])
         bucket = scan.bucket_for(len(p), bucket)
-        batch = scan.to_batch(p, n, pose, core.origin_world(static, state), bucket)
+        batch = scan.to_batch(p, n, pose, core.origin_world(static, state), bucket, img)
         key, k_sample, k_train = jax.random.split(state.key, 3)
         state, fs = integrate(state, batch, k_sample)
         assert bool(fs.ok)  # the default capacities hold a corridor: one pass, no growth

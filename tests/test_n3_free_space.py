@@ -19,7 +19,8 @@ SMALL = ["train.iters=20", "train.nv=256", "train.np_per_voxel=8", "preprocess.m
 FREE_SPACE = ["sampling.free_sample_n=3", "sampling.free_band_m=1.0", "sampling.free_ray_n=6",
               "sampling.free_ray_quiet_frames=10", "sampling.free_label_m=-1.0", "sampling.free_label_mode=projected",
               "sampling.free_point_filter_m=0.0", "window.carve=true", "window.carve_margin_m=0.05",
-              "window.carve_samples=16384", "window.carve_rule=replace", "window.carve_sign=false"]
+              "window.carve_samples=16384", "window.carve_rule=replace", "window.carve_sign=false",
+              "evidence.enabled=false", "preprocess.veil_m=0.0"]  # the rays and carving alone (issue 21)
 BOX = (4.0, 6.0, -1.0, 1.0, 1.5)  # x0, x1, y0, y1, height: a car-sized box 6 m ahead of the sensor
 
 

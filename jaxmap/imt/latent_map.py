@@ -17,8 +17,7 @@ Layout (read like mctx's `Tree`: a frozen dataclass of preallocated arrays with 
     jac_sum     [R, C, 3, 3] float32|None sum of w_k J_k (jacobian_field); None in the global map,
                                           which nothing transforms (only local maps carry Jacobians)
 
-with `R = T // 2` rows (the table never runs above load 0.5). Rows are handed out in insertion order
-and never move. The latent is divided on read (`m.latent`, `m.jac`).
+with `R = T // 2` rows (load <= 0.5), handed out in insertion order, never moved; latents divided on read.
 
 Fusion and removal (IMT paper eq. 11) store sums, so they touch only the rows of the batch:
 `S <- S +- sum_k w_k F_k`, `w <- w +- sum_k w_k` (the same for J), for every entry of a batch at once,
@@ -39,9 +38,8 @@ quadrature of the mean over the points) and its weight the exact number of point
 voxel this is 8 x ~2k (cell, voxel) pairs for a room frame instead of 8 x 31k, and the decoded SDF
 moves by 0.6 mm (`jaxmap bench imt`); `cells_per_voxel = 0` feeds every point.
 
-Capacity: `fuse` grows the table with `hashing.insert_grow` (outside jit, logged); the encoders retry with
-a bigger scratch table on overflow (`hints`, owned by the caller, remember the size that sufficed).
-Nothing is dropped silently; `remove` of a voxel that the map does not hold raises.
+Capacity: `fuse` grows the table (`hashing.insert_grow`, outside jit, logged); the encoders retry with a bigger
+scratch table on overflow (the caller's `hints` keep the size). `remove` of a voxel not held raises.
 """
 from __future__ import annotations
 
