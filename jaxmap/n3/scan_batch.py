@@ -46,6 +46,9 @@ def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, 
     cfg = static.preprocess
     raw_valid = raw.valid
     if cfg.veil_m > 0:
+        if static.image is None:  # the host reads it off the scan; a traced program cannot
+            raise ValueError("preprocess.veil_m on the device needs the scans' range-image layout: resolve it "
+                             "first (jaxmap.n3.scan.resolve_layout), or set preprocess.veil_m: 0")
         raw_valid = raw_valid & veil_keep(raw.points, static.image, cfg.veil_m, valid=raw_valid, xp=jnp)
     image = min_range_image_jax(raw.points, raw_valid, static.image) if static.evidence else None
     pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw_valid, cfg, rows)
