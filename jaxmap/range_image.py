@@ -162,6 +162,9 @@ def _neighbour(image, dr: int, dc: int, xp):
     return out
 
 
+GAP_PIXELS = 6   # veil test: past dropped-out neighbours, the first returns this many pixels away predict a return
+
+
 def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
     """[N] bool: the returns to keep once mixed pixels and isolated returns are dropped (the veil, or
     shadow-point, test of LiDAR pipelines, on the organised scan).
@@ -185,7 +188,7 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
     def image_of(ok):
         return min_range_image(points_s, layout, ok) if xp is np else min_range_image_jax(points_s, ok, layout)
 
-    def supported(image):
+    def supported(image, raw):
         def at(img):
             return img.reshape(-1)[flat]
 
@@ -199,16 +202,39 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
         def known(d):
             return xp.isfinite(at(_neighbour(image, *d, xp)))
 
+        def across_gap(dr, dc):
+            # Across dropouts: a surface seen at grazing incidence loses most of its returns, and those left
+            # lack a direct neighbour; the first returns on both sides past the lost ones (within GAP_PIXELS,
+            # along the beam or across the beams) predict it, linearly in the pixel. Only where the sensor
+            # gave no return next to it (`raw`): a mixed pixel has both direct neighbours, the surfaces it
+            # mixes, and one beside a mixed pixel dropped in the first pass is no gap.
+            def first_return(sign):
+                found, k = at(_neighbour(image, sign * dr, sign * dc, xp)), xp.ones(rng.shape, xp.float32)
+                for j in range(2, GAP_PIXELS + 1):
+                    take = ~xp.isfinite(found)
+                    found = xp.where(take, at(_neighbour(image, j * sign * dr, j * sign * dc, xp)), found)
+                    k = xp.where(take, float(j), k)
+                return found, k
+
+            (a_l, k_l), (a_r, k_r) = first_return(-1), first_return(1)
+            gap = ~xp.isfinite(at(_neighbour(raw, -dr, -dc, xp))) | ~xp.isfinite(at(_neighbour(raw, dr, dc, xp)))
+            # both sides: linear in the pixel; along the beam one side only: its range (the ground's rings)
+            both = xp.isfinite(a_l) & xp.isfinite(a_r)
+            pred = xp.where(both, a_l + (xp.where(both, a_r, 0.0) - xp.where(both, a_l, 0.0)) * (k_l / (k_l + k_r)),
+                            xp.minimum(a_l, a_r) if dc else xp.inf)
+            return gap & (xp.abs(rng - pred) <= tol_m)
+
         ok = (continues((0, -1), (0, -2)) | continues((0, 1), (0, 2))
-              | continues((-1, 0), (-2, 0)) | continues((1, 0), (2, 0)))
+              | continues((-1, 0), (-2, 0)) | continues((1, 0), (2, 0)) | across_gap(0, 1) | across_gap(1, 0))
         # a return with no neighbour at all in its row and column says nothing against it (a lone beam hit)
         has_any = known((0, -1)) | known((0, 1)) | known((-1, 0)) | known((1, 0))
         return ok | ~has_any | ~inside
 
     # twice: a mixed pixel that a neighbouring mixed pixel happened to continue loses that support once
     # the neighbour is gone
-    keep = valid & supported(image_of(valid))
-    return keep & supported(image_of(keep))
+    raw = image_of(valid)
+    keep = valid & supported(raw, raw)
+    return keep & supported(image_of(keep), raw)
 
 
 # -------------------------------------------------------------------------------------------------
@@ -239,6 +265,24 @@ def _window_min(img, k: int, axis: int, xp):
     a = -k
     b = k - (1 << p) + 1
     return xp.minimum(_neighbour(table, a * d[0], a * d[1], xp), _neighbour(table, b * d[0], b * d[1], xp))
+
+
+DROPOUT_ROWS = 2   # an empty pixel below the horizon takes the nearest return this many rows above or below
+
+
+def dropouts_block(image, layout: Layout, xp=np):
+    """The range image [rows, cols] with its empty pixels below the horizon filled for the free-space
+    test: a ray that points down meets the ground within range, so no return there is a dropout (a dark
+    or wet surface, grazing incidence), not free space. Such a pixel takes the nearest return within
+    DROPOUT_ROWS rows of it in its column (the rays just below and above it met the surface it lost),
+    range 0 (blocking) when there is none; empty pixels at or above the horizon (the sky, nothing within
+    range) stay inf. Without this the rays beside a dropout, which went farther, free the voxel that
+    the lost return would have hit (ground and walls at grazing incidence lose their voxels)."""
+    top = layout.elev0 + (np.arange(layout.rows) + 1) * layout.elev_step      # each row's upper edge, radians
+    below = xp.asarray(top < 0.0)[:, None]
+    near = _window_min(image, DROPOUT_ROWS, 0, xp)
+    fill = xp.where(xp.isfinite(near), near, xp.zeros((), image.dtype))
+    return xp.where(below & ~xp.isfinite(image), fill, image)
 
 
 def min_pool_levels(image, layout: Layout, xp=np):

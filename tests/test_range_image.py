@@ -172,3 +172,29 @@ def test_veil_filter_keeps_grazing_surfaces_and_drops_isolated_returns():
     keep = ri.veil_keep(far.astype(np.float32), lay, 0.15)
     assert keep[real].mean() <= 0.1, keep[real].mean()
     assert keep[~out].mean() >= 0.99
+
+
+def test_veil_filter_keeps_a_grazing_surface_that_lost_most_of_its_returns():
+    """The corridor at grazing incidence with 2 cm noise, and 70 % of the returns beyond 10 m lost (a real
+    LiDAR's dropouts there): >= 85 % of the returns left are kept (measured 88.9 %), as the first returns past
+    the lost ones predict them (`GAP_PIXELS`); with only the direct neighbours (GAP_PIXELS = 1: 77.8 %) fewer are."""
+    def corridor(d):
+        with np.errstate(divide="ignore"):
+            t = np.where(d[:, 2] < -1e-6, -1.7 / d[:, 2], np.inf)
+            t = np.minimum(t, np.where(np.abs(d[:, 1]) > 1e-6, 3.0 / np.abs(d[:, 1]), np.inf))
+        return np.where(t < 40.0, t, np.inf)
+
+    pts, d, t = _scan(corridor)
+    rng = np.random.default_rng(5)
+    r = np.linalg.norm(pts, axis=1)
+    noisy = (pts * ((r + rng.normal(0, 0.02, len(r))) / r)[:, None]).astype(np.float32)
+    lay = ri.estimate_layout(pts)
+    left = noisy[~((r > 10.0) & (rng.random(len(r)) < 0.7))]
+    far = np.linalg.norm(left, axis=1) > 10.0
+    kept = ri.veil_keep(left, lay, 0.15)
+    assert kept[far].mean() >= 0.85, kept[far].mean()
+    try:
+        gap, ri.GAP_PIXELS = ri.GAP_PIXELS, 1
+        assert ri.veil_keep(left, lay, 0.15)[far].mean() < kept[far].mean() - 0.05
+    finally:
+        ri.GAP_PIXELS = gap

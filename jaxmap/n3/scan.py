@@ -46,11 +46,13 @@ def check_frame(points_s, pose, frame: int):
 def preprocess(points_s, pose, cfg_preprocess, frame: int, image: bool = False):
     """(points [M, 3], normals [M, 3]) sensor frame, the pose [4, 4] float64, checked, and with `image` the
     whole scan's range image [H, W] float32 (the free-space evidence's; its layout is cfg_preprocess's),
-    else None. Mixed pixels and isolated returns are dropped first (`preprocess.veil_m`), from both."""
+    else None. Mixed pixels and isolated returns are dropped from the points (`preprocess.veil_m`), not
+    from the image: there they still block the free-space test (they say something may be there; gone,
+    the rays beside a depth edge would free the voxels of the edge whose returns they replaced)."""
     points_s, pose = check_frame(points_s, pose, frame)
     raw = drop_veil(points_s, cfg_preprocess)
     pts, nrm = preprocess_points(raw, cfg_preprocess)
-    img = min_range_image(raw, layout_of(cfg_preprocess)) if image else None
+    img = min_range_image(points_s, layout_of(cfg_preprocess)) if image else None
     return pts, nrm, pose, img
 
 

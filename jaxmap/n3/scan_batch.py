@@ -50,7 +50,8 @@ def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, 
             raise ValueError("preprocess.veil_m on the device needs the scans' range-image layout: resolve it "
                              "first (jaxmap.n3.scan.resolve_layout), or set preprocess.veil_m: 0")
         raw_valid = raw_valid & veil_keep(raw.points, static.image, cfg.veil_m, valid=raw_valid, xp=jnp)
-    image = min_range_image_jax(raw.points, raw_valid, static.image) if static.evidence else None
+    # every return, the veil's too: they block the free-space test (`scan.preprocess`)
+    image = min_range_image_jax(raw.points, raw.valid, static.image) if static.evidence else None
     pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw_valid, cfg, rows)
     T_m_s = SE3.from_rotation_and_translation(raw.rotation, raw.translation)  # (full float32 on a GPU: `geometry`)
     pts, nrm = T_m_s.apply(pts_s), T_m_s.rotation().apply(nrm_s)
