@@ -165,6 +165,32 @@ def _neighbour(image, dr: int, dc: int, xp):
 GAP_PIXELS = 6   # veil test: past dropped-out neighbours, the first returns this many pixels away predict a return
 
 
+def _across_gap(image, raw, flat, rng, dr: int, dc: int, tol_m: float, xp):
+    """[N] bool, the veil test across dropouts: a surface seen at grazing incidence loses most of its returns,
+    and those left lack a direct neighbour; the first returns on both sides past the lost ones (within
+    GAP_PIXELS, along the beam (dc) or across the beams (dr)) predict it, linearly in the pixel, and along
+    the beam one side alone does (its range: the ground's rings). Only where the sensor gave no return
+    next to it (`raw`, the image before the veil): a mixed pixel has both direct neighbours, the surfaces
+    it mixes, and one beside a mixed pixel dropped in the first pass is no gap."""
+    def at(img):
+        return img.reshape(-1)[flat]
+
+    def first_return(sign):
+        found, k = at(_neighbour(image, sign * dr, sign * dc, xp)), xp.ones(rng.shape, xp.float32)
+        for j in range(2, GAP_PIXELS + 1):
+            take = ~xp.isfinite(found)
+            found = xp.where(take, at(_neighbour(image, j * sign * dr, j * sign * dc, xp)), found)
+            k = xp.where(take, float(j), k)
+        return found, k
+
+    (a_l, k_l), (a_r, k_r) = first_return(-1), first_return(1)
+    gap = ~xp.isfinite(at(_neighbour(raw, -dr, -dc, xp))) | ~xp.isfinite(at(_neighbour(raw, dr, dc, xp)))
+    both = xp.isfinite(a_l) & xp.isfinite(a_r)
+    pred = xp.where(both, a_l + (xp.where(both, a_r, 0.0) - xp.where(both, a_l, 0.0)) * (k_l / (k_l + k_r)),
+                    xp.minimum(a_l, a_r) if dc else xp.inf)
+    return gap & (xp.abs(rng - pred) <= tol_m)
+
+
 def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
     """[N] bool: the returns to keep once mixed pixels and isolated returns are dropped (the veil, or
     shadow-point, test of LiDAR pipelines, on the organised scan).
@@ -173,8 +199,9 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
     neither its left nor its right neighbours, and neither do the beams above and below it at its
     azimuth. A return on a real surface continues at least one side in at least one direction: the
     linear extrapolation of the two pixels beyond a neighbour (2 a1 - a2) predicts it within tol_m (or,
-    where the second pixel is empty, the neighbour's range does). Grazing surfaces (ranges rising steadily along the
-    beam) pass the extrapolation; an isolated return (an outlier) has no neighbour that predicts it.
+    where the second pixel is empty, the neighbour's range does), or, past dropouts, the first returns
+    beyond them (`_across_gap`). Grazing surfaces (ranges rising steadily along the beam) pass the
+    extrapolation; an isolated return (an outlier) has no neighbour that predicts it.
 
     points_s [N, 3] sensor frame (the whole raw scan: neighbours must not be cropped away); valid [N]
     bool or None; tol_m: a multiple of the range noise (0.15 m for 2 cm noise). Pixels holding several
@@ -202,30 +229,10 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
         def known(d):
             return xp.isfinite(at(_neighbour(image, *d, xp)))
 
-        def across_gap(dr, dc):
-            # Across dropouts: a surface seen at grazing incidence loses most of its returns, and those left
-            # lack a direct neighbour; the first returns on both sides past the lost ones (within GAP_PIXELS,
-            # along the beam or across the beams) predict it, linearly in the pixel. Only where the sensor
-            # gave no return next to it (`raw`): a mixed pixel has both direct neighbours, the surfaces it
-            # mixes, and one beside a mixed pixel dropped in the first pass is no gap.
-            def first_return(sign):
-                found, k = at(_neighbour(image, sign * dr, sign * dc, xp)), xp.ones(rng.shape, xp.float32)
-                for j in range(2, GAP_PIXELS + 1):
-                    take = ~xp.isfinite(found)
-                    found = xp.where(take, at(_neighbour(image, j * sign * dr, j * sign * dc, xp)), found)
-                    k = xp.where(take, float(j), k)
-                return found, k
-
-            (a_l, k_l), (a_r, k_r) = first_return(-1), first_return(1)
-            gap = ~xp.isfinite(at(_neighbour(raw, -dr, -dc, xp))) | ~xp.isfinite(at(_neighbour(raw, dr, dc, xp)))
-            # both sides: linear in the pixel; along the beam one side only: its range (the ground's rings)
-            both = xp.isfinite(a_l) & xp.isfinite(a_r)
-            pred = xp.where(both, a_l + (xp.where(both, a_r, 0.0) - xp.where(both, a_l, 0.0)) * (k_l / (k_l + k_r)),
-                            xp.minimum(a_l, a_r) if dc else xp.inf)
-            return gap & (xp.abs(rng - pred) <= tol_m)
-
         ok = (continues((0, -1), (0, -2)) | continues((0, 1), (0, 2))
-              | continues((-1, 0), (-2, 0)) | continues((1, 0), (2, 0)) | across_gap(0, 1) | across_gap(1, 0))
+              | continues((-1, 0), (-2, 0)) | continues((1, 0), (2, 0))
+              | _across_gap(image, raw, flat, rng, 0, 1, tol_m, xp)
+              | _across_gap(image, raw, flat, rng, 1, 0, tol_m, xp))
         # a return with no neighbour at all in its row and column says nothing against it (a lone beam hit)
         has_any = known((0, -1)) | known((0, 1)) | known((-1, 0)) | known((1, 0))
         return ok | ~has_any | ~inside
@@ -267,22 +274,23 @@ def _window_min(img, k: int, axis: int, xp):
     return xp.minimum(_neighbour(table, a * d[0], a * d[1], xp), _neighbour(table, b * d[0], b * d[1], xp))
 
 
-DROPOUT_ROWS = 2   # an empty pixel below the horizon takes the nearest return this many rows above or below
+DROPOUT_ROWS = 2   # a dropout takes the nearest return this many rows above or below it in its column
 
 
 def dropouts_block(image, layout: Layout, xp=np):
-    """The range image [rows, cols] with its empty pixels below the horizon filled for the free-space
-    test: a ray that points down meets the ground within range, so no return there is a dropout (a dark
-    or wet surface, grazing incidence), not free space. Such a pixel takes the nearest return within
-    DROPOUT_ROWS rows of it in its column (the rays just below and above it met the surface it lost),
-    range 0 (blocking) when there is none; empty pixels at or above the horizon (the sky, nothing within
-    range) stay inf. Without this the rays beside a dropout, which went farther, free the voxel that
-    the lost return would have hit (ground and walls at grazing incidence lose their voxels)."""
-    top = layout.elev0 + (np.arange(layout.rows) + 1) * layout.elev_step      # each row's upper edge, radians
-    below = xp.asarray(top < 0.0)[:, None]
+    """The range image [rows, cols] with its dropouts filled for the free-space test. An empty pixel with a
+    return anywhere above it in its column is a dropout (a dark or wet surface, grazing incidence): the
+    ray above it met something, so this one, pointing lower, met something too, not free space. It takes
+    the nearest return within DROPOUT_ROWS rows of it in its column (the rays just above and below met the
+    surface it lost), range 0 (blocking) when there is none. An empty pixel with nothing above it (the
+    sky, or nothing within range along an open street: the rays that free the voxels a car left) stays
+    inf. Without this the rays beside a lost return, which went farther, free the voxel it would have
+    hit: the ground and dark cars of the suite's artifact city lose their voxels."""
+    finite = xp.isfinite(image)
+    above = xp.cumsum(finite[::-1].astype(xp.int32), axis=0)[::-1] - finite.astype(xp.int32) > 0
     near = _window_min(image, DROPOUT_ROWS, 0, xp)
     fill = xp.where(xp.isfinite(near), near, xp.zeros((), image.dtype))
-    return xp.where(below & ~xp.isfinite(image), fill, image)
+    return xp.where(above & ~finite, fill, image)
 
 
 def min_pool_levels(image, layout: Layout, xp=np):

@@ -132,8 +132,8 @@ def _free(coords, pts, valid, lay, one_pixel, x):
     return evidence.seen_free(coords, 0.2, levels, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)
 
 
-def test_dropouts_below_the_horizon_never_free_the_ground():
-    """A LiDAR loses returns at grazing incidence and on dark surfaces. With the empty pixels below the horizon
+def test_dropouts_never_free_the_ground():
+    """A LiDAR loses returns at grazing incidence and on dark surfaces. With the empty pixels under a return
     filled from their column (`range_image.dropouts_block`, the rule) no ground voxel is seen free, both when
     half the ground returns beyond 8 m are lost at random (the air above is still seen free: measured 65 %
     of it, 100 % without dropouts) and when every ground return beyond 10 m is (a dark road). With every
