@@ -9,8 +9,7 @@ VARIANTS = {
     "no_raise": ["evidence.raise_pairs=false"],         # void voxels masked, their pairs left as they were
     # the evidence alone: no free samples along the ray, nothing carved (issue 21's mechanism off)
     "no_rays": ["sampling.free_ray_n=0", "window.carve=false"],
-    "no_rays_void1": ["sampling.free_ray_n=0", "window.carve=false", "evidence.void_frames=1"],
-    "void1": ["evidence.void_frames=1"],                # void after one frame seen free, not two
+    "void2": ["evidence.void_frames=2"],                # void after two frames seen free, not one
     # the free-space label and pair store before issue 14 (flat +tr free labels, newest-64 ring)
     "flat_ring": ["sampling.free_label_mode=truncation", "window.block_policy=ring", "window.pairs_per_frame=0"],
     # free space before issue 21: samples only in the last metre before the band, nothing carved

@@ -127,7 +127,7 @@ class EvidenceConfig:
                                      # last hit are void: no training on points there, their pairs raised, no mesh
     margin_m: float = 0.1            # a voxel is seen free when every return near its direction lies beyond its
                                      # far side by this (pose and range error; DUFOMap's margin)
-    void_frames: int = 2             # frames seen free since the last hit that make a voxel void
+    void_frames: int = 1             # frames seen free since the last hit that make a voxel void
     max_range_m: float = 40.0        # voxels within this of the sensor are tested each frame (up to 262,144 of
                                      # them; more: a different part each frame)
     raise_pairs: bool = True         # the pairs stored in a voxel that turns void are raised to >= margin_m
