@@ -20,10 +20,12 @@ def _enable_compilation_cache():
         compile_cache.enable(path)
     elif explicit:
         _os.environ["JAX_COMPILATION_CACHE_DIR"] = path
-        _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+        _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+                               _os.environ.get("JAXMAP_CACHE_MIN_COMPILE_S", "0.5"))
     else:
         _os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", path)
-        _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.5")
+        _os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS",
+                               _os.environ.get("JAXMAP_CACHE_MIN_COMPILE_S", "0.5"))
 
 
 _enable_compilation_cache()

@@ -63,8 +63,10 @@ def enable(path: str | None = None) -> None:
 
     try:
         jax.config.update("jax_compilation_cache_dir", path)
-        # Cache every program that takes a noticeable time to compile (the frame program takes 5-20 s).
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        # Cache every program that takes a noticeable time to compile (the frame program takes 5-20 s);
+        # JAXMAP_CACHE_MIN_COMPILE_S lowers it (the test suite: 0, its modules drop their compiled programs).
+        jax.config.update("jax_persistent_cache_min_compile_time_secs",
+                          float(os.environ.get("JAXMAP_CACHE_MIN_COMPILE_S", "0.5")))
     except Exception as e:  # an old jax without the option: run uncached rather than fail
         log.debug("no persistent compilation cache: %s", e)
 

@@ -20,6 +20,10 @@ if _CACHE:
     _WORKER_CACHE = os.path.join(_CACHE, "tests-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
     os.environ["JAXMAP_CACHE_DIR"] = _WORKER_CACHE        # for the CLI subprocesses and notebook kernels
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _WORKER_CACHE  # for this process
+    # every program, also those that compile in under 0.5 s: each module drops its compiled programs (below),
+    # and the next module loads them from the cache instead of compiling them again
+    os.environ["JAXMAP_CACHE_MIN_COMPILE_S"] = "0"                 # (jaxmap.compile_cache.enable, the CLI)
+    os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"  # this process: jax is not imported yet
 else:  # JAXMAP_CACHE_DIR= : every program compiles, in every process
     os.environ.pop("JAX_COMPILATION_CACHE_DIR", None)
 

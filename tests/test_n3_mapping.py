@@ -99,11 +99,12 @@ def test_small_city_maps_to_a_mesh_close_to_ground_truth(small_city, tmp_path, m
     # the engine at the commit before issue 21 allocated 67680). The figures below are the same engine's
     # (unchanged by issue 25) on the 10 Hz drive's every 4th scan. On the earlier drive another random
     # stream of the near-surface samples gave the same count, so the check pins the allocation itself:
-    # one key lost or allocated twice per frame would move it by ~15. The veil filter (issue 30) drops the
-    # mixed pixels at depth edges before allocation: 66013 voxels and 157787 rows (without it, veil_m=0:
-    # 66082 and 158173, the figures before it).
+    # one key lost or allocated twice per frame would move it by ~15 voxels and ~40 rows. The veil filter
+    # (issue 30) drops the mixed pixels at depth edges before allocation: 66011-66013 voxels and
+    # 157775-157787 rows over runs with and without a warm compile cache (the programs XLA builds differ
+    # in their last float bits; without the veil, veil_m=0: 66082 and 158173, the figures before it).
     frames = json.loads((out / "timing.json").read_text())["frames"]
-    assert abs(frames[-1]["leaf_voxels"] - 66013) <= 2 and frames[-1]["feature_rows"] == 157787, frames[-1]
+    assert abs(frames[-1]["leaf_voxels"] - 66012) <= 6 and abs(frames[-1]["feature_rows"] - 157781) <= 24, frames[-1]
     # Re-extract a mesh from the checkpoint at another resolution (a relative run path, as users type it).
     monkeypatch.chdir(tmp_path)
     assert main(["mesh", "run", "--res", "0.2"]) == 0
