@@ -148,17 +148,19 @@ def test_veil_filter_drops_mixed_pixels_between_two_walls_and_keeps_the_walls():
     np.testing.assert_array_equal(np.asarray(keep_j), keep)
 
 
+def _corridor(d):
+    """Ranges [R] of directions d [R, 3]: the ground 1.7 m below and walls 3 m to both sides, up to 40 m."""
+    with np.errstate(divide="ignore"):
+        t = np.where(d[:, 2] < -1e-6, -1.7 / d[:, 2], np.inf)
+        t = np.minimum(t, np.where(np.abs(d[:, 1]) > 1e-6, 3.0 / np.abs(d[:, 1]), np.inf))
+    return np.where(t < 40.0, t, np.inf)
+
+
 def test_veil_filter_keeps_grazing_surfaces_and_drops_isolated_returns():
     """A wall along the drive seen at grazing incidence (ranges rising steadily along each beam) and 2 cm
     range noise: >= 99.5 % kept. Returns moved to random ranges (the synthetic LiDAR's outliers) are
     dropped (>= 90 %)."""
-    def corridor(d):
-        with np.errstate(divide="ignore"):
-            t = np.where(d[:, 2] < -1e-6, -1.7 / d[:, 2], np.inf)
-            t = np.minimum(t, np.where(np.abs(d[:, 1]) > 1e-6, 3.0 / np.abs(d[:, 1]), np.inf))
-        return np.where(t < 40.0, t, np.inf)
-
-    pts, d, t = _scan(corridor)
+    pts, d, t = _scan(_corridor)
     rng = np.random.default_rng(3)
     r = np.linalg.norm(pts, axis=1)
     noisy = pts * ((r + rng.normal(0, 0.02, len(r))) / r)[:, None]
@@ -178,13 +180,7 @@ def test_veil_filter_keeps_a_grazing_surface_that_lost_most_of_its_returns():
     """The corridor at grazing incidence with 2 cm noise, and 70 % of the returns beyond 10 m lost (a real
     LiDAR's dropouts there): >= 85 % of the returns left are kept (measured 88.9 %), as the first returns past
     the lost ones predict them (`GAP_PIXELS`); with only the direct neighbours (GAP_PIXELS = 1: 77.8 %) fewer are."""
-    def corridor(d):
-        with np.errstate(divide="ignore"):
-            t = np.where(d[:, 2] < -1e-6, -1.7 / d[:, 2], np.inf)
-            t = np.minimum(t, np.where(np.abs(d[:, 1]) > 1e-6, 3.0 / np.abs(d[:, 1]), np.inf))
-        return np.where(t < 40.0, t, np.inf)
-
-    pts, d, t = _scan(corridor)
+    pts, d, t = _scan(_corridor)
     rng = np.random.default_rng(5)
     r = np.linalg.norm(pts, axis=1)
     noisy = (pts * ((r + rng.normal(0, 0.02, len(r))) / r)[:, None]).astype(np.float32)
