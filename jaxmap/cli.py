@@ -44,7 +44,10 @@ def _synth_args(sub) -> None:
                    help="city: a 1.1 km serpentine drive through a 256 m x 200 m city, 1025 frames")
     p.add_argument("--layout", choices=["grid", "suburb"], default="grid",
                    help="city: the street grid (default) or a curved ring boulevard with detached houses")
-    p.add_argument("--beams", type=int, default=None, help="city: LiDAR beams (default per preset: 64, small 32)")
+    p.add_argument("--beams", default=None, metavar="N|hdl64|vlp32",
+                   help="city: the LiDAR's beams: N uniform beams from -25 to +2 deg (default per preset: 64, small 32), "
+                        "or a real sensor's beam table: hdl64 (KITTI's two-block HDL-64E, per-beam jitter, 1024 "
+                        "azimuth steps), vlp32 (a VLP-32C, -25 to +15 deg, dense near the horizon, 1800 steps)")
     p.add_argument("--traffic", type=int, default=0, metavar="N",
                    help="city: N moving objects in the scans, never in the GT (~2/3 cars: ahead of the sensor in its "
                         "lane, oncoming, overtaking it at up to 17 m/s, moving like cars; the rest pedestrians crossing "

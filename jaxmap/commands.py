@@ -35,6 +35,12 @@ def synth(args) -> int:
     if args.scene == "city":
         kw["layout"] = args.layout
         if args.beams is not None:
+            from jaxmap.synth.beams import parse
+
+            try:
+                parse(args.beams)
+            except ValueError as e:
+                raise SystemExit(f"jaxmap synth: --beams: {e}") from None
             kw["beams"] = args.beams
         if args.traffic:
             kw["traffic"] = args.traffic

@@ -14,24 +14,24 @@ def _summary(c_l1, ghost=None, far=2.0):
 
 def test_rows_are_recorded_city_by_city_and_twins_compare(tmp_path, capsys):
     path = str(tmp_path / "suite.json")
-    S._record(path, "jaxmap", "grid_s1_traffic", _summary(3.1, ghost=20.0, far=5.0))  # a traffic-only run first
-    v = S._record(path, "jaxmap", "grid_s1", _summary(3.0))
-    assert list(v["rows"]) == ["grid_s1", "grid_s1_traffic"]           # suite order, nothing lost
+    S._record(path, "jaxmap", "grid_s1_hdl64_traffic", _summary(3.1, ghost=20.0, far=5.0))  # a traffic-only run first
+    v = S._record(path, "jaxmap", "grid_s1_hdl64", _summary(3.0))
+    assert list(v["rows"]) == ["grid_s1_hdl64", "grid_s1_hdl64_traffic"]           # suite order, nothing lost
     assert v["mean"]["chamfer_l1_cm"] == 3.0                            # the clean cities only
-    S._record(path, "band_only", "grid_s1", _summary(2.9))
+    S._record(path, "band_only", "grid_s1_hdl64", _summary(2.9))
     saved = json.load(open(path))
-    assert set(saved) == {"jaxmap", "band_only"} and saved["jaxmap"]["rows"]["grid_s1"]["chamfer_l1_cm"] == 3.0
+    assert set(saved) == {"jaxmap", "band_only"} and saved["jaxmap"]["rows"]["grid_s1_hdl64"]["chamfer_l1_cm"] == 3.0
     S.print_suite("jaxmap", v["rows"], v["floors"], v["signed_error_cm"], v["beyond_protocol"])
     out = capsys.readouterr().out
-    assert "grid_s1_traffic / grid_s1: C-L1 3.10 / 3.00 cm (x1.033), far 5.00 / 2.00 %" in out
+    assert "grid_s1_hdl64_traffic / grid_s1_hdl64: C-L1 3.10 / 3.00 cm (x1.033), far 5.00 / 2.00 %" in out
     assert "ghost m2: car 20.0, total 20.0" in out and "mean (1 clean)" in out
-    assert S.summarize({"grid_s1_traffic": v["rows"]["grid_s1_traffic"]}, S.CLEAN) == {"mean": {}, "worst": {}}
+    assert S.summarize({"grid_s1_hdl64_traffic": v["rows"]["grid_s1_hdl64_traffic"]}, S.CLEAN) == {"mean": {}, "worst": {}}
 
 
 def test_a_traffic_city_from_an_older_generator_is_made_again(tmp_path):
     """The suite's traffic city asks for the parking cars: a directory whose meta.json says its traffic
     has no roles (before issue 30) or no parking cars is synthesized again, one that has them is kept."""
-    kw = S.SUITE["grid_s1_traffic"]
+    kw = S.SUITE["grid_s1_hdl64_traffic"]
     assert kw.get("parking")
     d = tmp_path / "c"
     d.mkdir()
@@ -39,4 +39,4 @@ def test_a_traffic_city_from_an_older_generator_is_made_again(tmp_path):
                            ({"cars": 7, "roles": {}, "parking": {}}, False)):
         (d / "meta.json").write_text(json.dumps({"traffic": traffic}))
         assert S._older_traffic(str(d), kw) == older, traffic
-    assert not S._older_traffic(str(d), S.SUITE["grid_s1"])
+    assert not S._older_traffic(str(d), S.SUITE["grid_s1_hdl64"])

@@ -129,8 +129,8 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
     assert "dynamic points" not in format_metrics(m)
     # the suite table: SA / DA columns and on the traffic city's line
     row = {k: 1.0 for k in n3_suite.KEYS}
-    n3_suite.print_suite("jaxmap", {"grid_s1": row, "grid_s1_traffic": row}, {}, {},
-                         {"grid_s1_traffic": {"dynamic_points": got}})
+    n3_suite.print_suite("jaxmap", {"grid_s1_hdl64": row, "grid_s1_hdl64_traffic": row}, {}, {},
+                         {"grid_s1_hdl64_traffic": {"dynamic_points": got}})
     printed = capsys.readouterr().out
     assert "SA %" in printed and f"SA {got['sa_percent']:.2f} %, DA {got['da_percent']:.2f} %" in printed
 

@@ -1,23 +1,26 @@
 """`jaxmap bench n3 --suite`: the validation suite on which jaxmap's N3 defaults are chosen.
 
-Six synthetic cities that differ from the default city (`data/city_bench`, the scene the README's
-tables report) and from one another in seed, layout, range noise, beam count, traffic and sensor:
+Seven synthetic cities that differ from the default city (`data/city_bench`, the scene the README's
+tables report) and from one another in seed, layout, range noise, the LiDAR's beam table, traffic and
+sensor artifacts. They scan like real sensors (`jaxmap.synth.beams`): most real spinning LiDARs do not
+space their beams evenly, and a rule chosen on even beams alone can break on them.
 
-    grid_s1            street grid, seed 1
-    grid_s2_noise2cm   street grid, seed 2, Gaussian range noise of 2 cm
-    suburb_s3          the suburb layout (curved streets, detached houses), seed 3
-    grid_s4_b32        street grid, seed 4, a 32-beam LiDAR
-    grid_s1_traffic    grid_s1 with 8 moving objects (5 cars: ahead, oncoming, overtaking; 3 pedestrians, one
-                       crossing the drive's street; never in the GT) and the two parking cars (`--parking`: one
-                       drives off its place, one parks and stays): the static scene is grid_s1's, its "twin",
-                       and so is the GT but for the car that parked (the GT is the static world at the end)
-    grid_s2_realistic  grid_s2_noise2cm with a real sensor's artifacts (mixed pixels, dropouts,
-                       outliers, per-beam offsets; `jaxmap synth city --realistic`): twin grid_s2_noise2cm
+    grid_s1_hdl64           street grid, seed 1, KITTI's two-block HDL-64E (per-beam elevation jitter)
+    grid_s2_hdl64_noise2cm  street grid, seed 2, HDL-64E, Gaussian range noise of 2 cm
+    suburb_s3               the suburb layout (curved streets, detached houses), seed 3, 64 uniform beams
+    grid_s4_b32             street grid, seed 4, 32 uniform beams
+    grid_s5_vlp32           street grid, seed 5, a VLP-32C (dense near the horizon, 3.5-9.4 deg apart below)
+    grid_s1_hdl64_traffic   grid_s1_hdl64 with 8 moving objects (5 cars: ahead, oncoming, overtaking; 3
+                            pedestrians, one crossing the drive's street; never in the GT) and the two parking
+                            cars (`--parking`: one drives off its place, one parks and stays): the static scene
+                            is grid_s1_hdl64's, its "twin", and so is the GT but for the car that parked
+    grid_s2_hdl64_realistic grid_s2_hdl64_noise2cm with a real sensor's artifacts (mixed pixels, dropouts,
+                            outliers, per-beam offsets; `jaxmap synth city --realistic`): its twin
 
-The first four are the clean cities (mean and worst as before); each of the other two is compared
-with its twin: the ghost area and DynamicMap's SA / DA of the points trained on (traffic;
-`jaxmap.metrics.dynamic`), the share of predicted surface the protocol drops as farther than 0.2 m from
-the GT (realistic), and the C-L1 ratio to the twin.
+The first five are the clean cities (mean and worst); each of the other two is compared with its twin:
+the ghost area and DynamicMap's SA / DA of the points trained on (traffic; `jaxmap.metrics.dynamic`),
+the share of predicted surface the protocol drops as farther than 0.2 m from the GT (realistic), and
+the C-L1 ratio to the twin.
 
 Each variant (`--only jaxmap,projective,...`, default `jaxmap`) maps every city in its own process
 with `configs/city.yaml` (plus `--set`s), and is evaluated with the standard protocol; the table has
@@ -33,14 +36,15 @@ import os
 import numpy as np
 
 SUITE = {
-    "grid_s1": dict(seed=1),
-    "grid_s2_noise2cm": dict(seed=2, noise_m=0.02),
+    "grid_s1_hdl64": dict(seed=1, beams="hdl64"),
+    "grid_s2_hdl64_noise2cm": dict(seed=2, beams="hdl64", noise_m=0.02),
     "suburb_s3": dict(seed=3, layout="suburb"),
     "grid_s4_b32": dict(seed=4, beams=32),
-    "grid_s1_traffic": dict(seed=1, traffic=8, parking=True),
-    "grid_s2_realistic": dict(seed=2, noise_m=0.02, realistic="all"),
+    "grid_s5_vlp32": dict(seed=5, beams="vlp32"),
+    "grid_s1_hdl64_traffic": dict(seed=1, beams="hdl64", traffic=8, parking=True),
+    "grid_s2_hdl64_realistic": dict(seed=2, beams="hdl64", noise_m=0.02, realistic="all"),
 }
-TWINS = {"grid_s1_traffic": "grid_s1", "grid_s2_realistic": "grid_s2_noise2cm"}
+TWINS = {"grid_s1_hdl64_traffic": "grid_s1_hdl64", "grid_s2_hdl64_realistic": "grid_s2_hdl64_noise2cm"}
 CLEAN = tuple(c for c in SUITE if c not in TWINS)
 KEYS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_score")
 
@@ -94,7 +98,7 @@ def summarize(rows: dict, cities=None) -> dict:
 
 
 def _line(name: str, m: dict, extra: str = "") -> str:
-    return (f"{name:<22}{m['accuracy_cm']:>8.2f}{m['completion_cm']:>8.2f}{m['chamfer_l1_cm']:>8.2f}"
+    return (f"{name:<25}{m['accuracy_cm']:>8.2f}{m['completion_cm']:>8.2f}{m['chamfer_l1_cm']:>8.2f}"
             f"{m['completion_ratio']:>7.2f}{m['f_score']:>7.2f}{extra}")
 
 
@@ -104,7 +108,7 @@ def print_suite(variant: str, rows: dict, floors: dict, signed: dict, extra: dic
     traffic / realistic city against its twin."""
     extra = extra or {}
     nan = float("nan")
-    head = (f"{'city (' + variant + ')':<22}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
+    head = (f"{'city (' + variant + ')':<25}{'Acc cm':>8}{'Comp cm':>8}{'C-L1 cm':>8}{'CR %':>7}{'F %':>7}"
             f"   {'floor C-L1':>10}{'floor F':>8}{'far %':>7}{'F all %':>8}{'ghost m2':>9}{'SA %':>7}{'DA %':>7}"
             f"   signed error road / sidewalk cm")
     print(head)

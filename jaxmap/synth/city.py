@@ -72,6 +72,7 @@ from jaxmap.io.kitti import camera_poses_from_lidar, write_calib, write_poses
 from jaxmap.io.pointcloud import write_mesh_ply, write_points_ply, write_scan_bin
 from jaxmap.synth import common as C
 from jaxmap.synth.drive import drive_stats
+from jaxmap.synth import beams as beam_patterns
 from jaxmap.synth import suburb
 from jaxmap.synth import traffic as traffic_mod
 from jaxmap.synth.streets import CURB_H, TILE, Scene, add_pole, add_tree, car_mesh, inside_convex
@@ -142,7 +143,6 @@ LONG = CityPreset(half_extent=128.0, street_x=0.0, street_y=0.0, road_width=8.0,
                   half_extent_y=100.0, parks=((1, 1), (4, 1), (2, 3), (5, 2), (3, 4)))
 
 SENSOR_H = 1.73          # LiDAR height above the road (KITTI)
-ELEVATION_DEG = (-25.0, 2.0)
 MAX_RANGE = 50.0
 # Ground truth: GT points are kept within GT_NEAR_M of an observation (a static-scene hit of any frame,
 # the hits thinned to one per OBS_VOXEL_M voxel); each carries one of CITY_CLASSES (uint8 index).
@@ -417,9 +417,10 @@ def _poses_at(path, arclengths) -> np.ndarray:
     return np.stack(poses)
 
 
-def beam_directions(beams: int, azimuth_steps: int) -> np.ndarray:
-    """Unit ray directions in the LiDAR frame, beam-major: [beams*azimuth_steps, 3] float64."""
-    el = np.deg2rad(np.linspace(ELEVATION_DEG[0], ELEVATION_DEG[1], beams))
+def beam_directions(elevations_deg: np.ndarray, azimuth_steps: int) -> np.ndarray:
+    """Unit ray directions in the LiDAR frame, beam-major: [beams*azimuth_steps, 3] float64, beams at
+    elevations_deg [beams] (`jaxmap.synth.beams`)."""
+    el = np.deg2rad(np.asarray(elevations_deg, np.float64))
     az = 2 * np.pi * np.arange(azimuth_steps) / azimuth_steps
     el, az = np.meshgrid(el, az, indexing="ij")
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
@@ -738,7 +739,7 @@ def _pedestrian_mesh(peds):
 
 
 def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int | None = None,
-                  noise_m: float = 0.0, beams: int | None = None, azimuth_steps: int | None = None,
+                  noise_m: float = 0.0, beams: int | str | None = None, azimuth_steps: int | None = None,
                   pedestrians: bool = False, long: bool = False, layout: str = "grid", traffic: int = 0,
                   realistic: str | tuple = (), lane_shift_m: float = 0.0, start_m: float = 0.0,
                   parking: bool = False) -> dict:
@@ -751,7 +752,11 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
           default's 64 x 1024 beams and GT density (1 GB of scans; see `long_drive`).
     n_frames: frames evenly spaced over the one closed loop (default per preset); with long, the first
               n_frames of the drive at the preset's 1.09 m (spread over the whole route if more).
-    noise_m: std of Gaussian range noise (m).  beams / azimuth_steps: override the LiDAR resolution.
+    noise_m: std of Gaussian range noise (m).
+    beams: the LiDAR's beams (default per preset): a count of uniform beams from -25 to +2 deg, or a real
+           sensor's table by name (`jaxmap.synth.beams`: "hdl64", KITTI's two-block HDL-64E with per-beam
+           jitter; "vlp32", a VLP-32C, dense near the horizon and sparse below); azimuth_steps: per turn
+           (default per preset, or the named sensor's).
     pedestrians: add boxes walking around the central block (long: around the first block on the left
                  of the drive) (in the scans, not in the ground truth).
     layout: "grid" (the street grid above, the default) or "suburb" (`jaxmap.synth.suburb`: a curved
@@ -792,9 +797,11 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     modes = realistic_modes(realistic)
     P = preset(small, long, layout)
     n_frames = int(n_frames or P.frames)
-    beams = int(beams or P.beams)
-    azimuth_steps = int(azimuth_steps or P.azimuth_steps)
-    if n_frames < 1 or beams < 1 or azimuth_steps < 1:
+    pattern, count = beam_patterns.parse(beams)
+    elev_deg = beam_patterns.elevations_deg(pattern, count or (P.beams if pattern == "uniform" else None), seed)
+    beams = len(elev_deg)
+    azimuth_steps = int(azimuth_steps or beam_patterns.AZIMUTH_STEPS.get(pattern, P.azimuth_steps))
+    if n_frames < 1 or azimuth_steps < 1:
         raise ValueError("n_frames, beams and azimuth_steps must be >= 1")
     out_dir = os.fspath(out_dir)
     scan_dir = C.prepare_out_dir(out_dir, "velodyne", ".bin")
@@ -817,7 +824,7 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
 
     # ---- scans
     caster = C.Raycaster(V, F)
-    dirs_s = beam_directions(beams, azimuth_steps)
+    dirs_s = beam_directions(elev_deg, azimuth_steps)
     if pedestrians and layout == "suburb":
         peds = suburb.pedestrian_boxes(P, seed, n_frames, 0.15 * spacing)
     else:
@@ -916,8 +923,9 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         "scene": "city", "layout": layout, "seed": int(seed), "small": bool(small), "frames": n_frames,
         "points_per_frame": C.points_stats(counts),
         "extent": {"min": C.rounded(V.min(0), 3), "max": C.rounded(V.max(0), 3)},
-        "sensor": {"type": "lidar", "beams": beams, "azimuth_steps": azimuth_steps,
-                   "elevation_deg": list(ELEVATION_DEG), "max_range_m": MAX_RANGE, "height_m": SENSOR_H,
+        "sensor": {"type": "lidar", "beams": beams, "azimuth_steps": azimuth_steps, "beam_pattern": pattern,
+                   "elevation_deg": [round(float(elev_deg[0]), 4), round(float(elev_deg[-1]), 4)],
+                   "beam_elevations_deg": C.rounded(elev_deg, 4), "max_range_m": MAX_RANGE, "height_m": SENSOR_H,
                    "noise_m": float(noise_m)},
         "trajectory": ({"route_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
                         "driven_length_m": round(spacing * (n_frames - 1), 3), "closed_loop": False,
