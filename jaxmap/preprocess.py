@@ -275,25 +275,33 @@ def range_image_normals(points_s: np.ndarray, raw_s: np.ndarray, layout: range_i
 
 
 def layout_of(cfg, points_s: np.ndarray | None = None) -> range_image.Layout | None:
-    """The range-image layout a PreprocessConfig sets (`image_rows` > 0), else the one read off the raw scan
-    `points_s` [N, 3] (sensor frame), else None."""
+    """The range-image layout a PreprocessConfig sets (`image_rows` > 0: a beam table `image_beams_deg`, else
+    a uniform grid), else the one read off the raw scan `points_s` [N, 3] (sensor frame), else None."""
     if cfg.image_rows > 0:
+        if cfg.image_beams_deg:
+            return range_image.beam_layout(np.radians(cfg.image_beams_deg), cfg.image_cols,
+                                           math.radians(cfg.image_az0_deg))
         return range_image.Layout(rows=cfg.image_rows, cols=cfg.image_cols, elev0=math.radians(cfg.image_elev0_deg),
                                   elev_step=math.radians(cfg.image_elev_step_deg), az0=math.radians(cfg.image_az0_deg))
     if points_s is None:
         return None
-    return range_image.estimate_layout(points_s)
+    return layout_of(with_layout(cfg, points_s))
 
 
 def with_layout(cfg, points_s: np.ndarray):
     """cfg (a PreprocessConfig) with its range-image layout fixed: read off the raw scan points_s [N, 3]
-    when `image_rows` is 0 (the first scan of a run; every later scan then uses the same image)."""
+    when `image_rows` is 0 (the first scan of a run; every later scan then uses the same image). A beam
+    table given in the config (`image_beams_deg`) is kept: only the columns are read off the scan."""
     if cfg.image_rows > 0:
         return cfg
     lay = range_image.estimate_layout(points_s)
+    if cfg.image_beams_deg:
+        lay = range_image.beam_layout(np.radians(cfg.image_beams_deg), lay.cols, lay.az0)
+    # the beam table in degrees, rounded well below a beam's spread (1e-6 deg): the layout reads back the same
     return dataclasses.replace(cfg, image_rows=lay.rows, image_cols=lay.cols,
                                image_elev0_deg=math.degrees(lay.elev0), image_elev_step_deg=math.degrees(lay.elev_step),
-                               image_az0_deg=math.degrees(lay.az0))
+                               image_az0_deg=math.degrees(lay.az0),
+                               image_beams_deg=tuple(round(math.degrees(b), 6) for b in lay.beams))
 
 
 def drop_veil(points_s: np.ndarray, cfg) -> np.ndarray:

@@ -7,10 +7,13 @@
 
 No ring field is needed: a spinning LiDAR fires each beam at a fixed elevation, so the elevations of one
 scan fall into as many tight clusters as it has beams, and its azimuth steps are regular. The layout is
-read off those (`estimate_layout`): one row per beam (uniform rows at the mean beam spacing) and one
-column per azimuth step. A sensor without beams (a depth camera, a solid-state LiDAR) gets a uniform
-spherical grid at its angular sampling. Pixels with several returns keep the nearest (`min`); pixels
-without a return are `inf`: nothing is known there.
+read off those (`estimate_layout`): the sensor's beam table (each cluster's centre), one row per beam
+(a return belongs to the nearest beam: row boundaries halfway between neighbouring beams, however
+unevenly the sensor spaces them: KITTI's HDL-64E has two blocks 0.33 and 0.5 deg apart, a VLP-32C
+beams 0.33 deg apart at the horizon and up to 9 deg apart below), and one column per azimuth step.
+Neighbours and footprints are counted in beams, never in a uniform angle. A sensor without beams (a
+depth camera, a solid-state LiDAR) gets a uniform spherical grid at its angular sampling. Pixels with
+several returns keep the nearest (`min`); pixels without a return are `inf`: nothing is known there.
 
 Everything is in the sensor frame (x forward, z up): elevation = atan2(z, |xy|), azimuth = atan2(y, x).
 The functions take `xp` (numpy or jax.numpy) where both sides need them: the host preprocesses with
@@ -32,9 +35,13 @@ MAX_ROWS, MAX_COLS = 512, 4096
 class Layout:
     """The pixel grid of a range image (hashable: a static argument of compiled programs).
 
-    rows, cols: image size; elev0: elevation (radians) of the lower edge of row 0; elev_step: rows'
-    height (radians); cols span the full turn, column c covering azimuths [az0 + c w, az0 + (c+1) w)
+    rows, cols: image size; cols span the full turn, column c covering azimuths [az0 + c w, az0 + (c+1) w)
     (mod 2 pi), w = 2 pi / cols: az0 puts the first scan's azimuth steps at the columns' centres.
+    beams: a spinning LiDAR's beam table, the elevations (radians, ascending) of its `rows` beams: row r
+    holds the elevations nearer to beam r than to its neighbours (the outer rows reach half their gap
+    beyond the outer beams). Empty for a uniform grid (a sensor without beams): row r covers
+    [elev0 + r elev_step, elev0 + (r+1) elev_step). elev0 / elev_step: with beams, the lower edge of
+    row 0 and the median gap between neighbouring beams (the scale of the footprint windows).
     """
 
     rows: int
@@ -42,15 +49,33 @@ class Layout:
     elev0: float
     elev_step: float
     az0: float = -math.pi
+    beams: tuple = ()
 
     @property
     def col_step(self) -> float:
         return 2.0 * math.pi / self.cols
 
+    @property
+    def edges(self) -> tuple:
+        """The rows' elevation boundaries (radians, [rows + 1], ascending)."""
+        if not self.beams:
+            return tuple(self.elev0 + r * self.elev_step for r in range(self.rows + 1))
+        b = self.beams
+        mid = tuple(0.5 * (lo + hi) for lo, hi in zip(b[:-1], b[1:]))
+        first = b[0] - 0.5 * (b[1] - b[0]) if len(b) > 1 else b[0] - 0.5 * self.elev_step
+        last = b[-1] + 0.5 * (b[-1] - b[-2]) if len(b) > 1 else b[0] + 0.5 * self.elev_step
+        return (first,) + mid + (last,)
+
     def describe(self) -> str:
-        return (f"{self.rows} x {self.cols} pixels, elevation {math.degrees(self.elev0):.2f} to "
-                f"{math.degrees(self.elev0 + self.rows * self.elev_step):.2f} deg "
-                f"({math.degrees(self.elev_step):.3f} x {math.degrees(self.col_step):.3f} deg)")
+        e = self.edges
+        kind = (f"{self.rows} beams {min(self.gaps_deg()):.3f}-{max(self.gaps_deg()):.3f} deg apart"
+                if len(self.beams) > 1 else f"rows {math.degrees(self.elev_step):.3f} deg")
+        return (f"{self.rows} x {self.cols} pixels, elevation {math.degrees(e[0]):.2f} to {math.degrees(e[-1]):.2f} "
+                f"deg ({kind}, columns {math.degrees(self.col_step):.3f} deg)")
+
+    def gaps_deg(self) -> list:
+        """The gaps between neighbouring beams (degrees; [rows - 1])."""
+        return [math.degrees(hi - lo) for lo, hi in zip(self.beams[:-1], self.beams[1:])]
 
 
 def _angles(points_s, xp=np):
@@ -78,11 +103,13 @@ def estimate_layout(points_s: np.ndarray) -> Layout:
     # Beams hold a whole turn of returns; a cluster of a few points is a stray (an outlier, a mixed pixel).
     beams = sizes >= max(8, 0.05 * np.median(sizes))
     n_beams = int(beams.sum())
+    beam_table = ()
     if 2 <= n_beams <= MAX_ROWS and n_beams >= 0.5 * len(sizes):
         centres = np.array([np.median(e[s:t]) for s, t in zip(starts[beams], ends[beams])])
-        step = float((centres[-1] - centres[0]) / (n_beams - 1))
+        step = float(np.median(np.diff(centres)))
         rows = n_beams
-        lo = float(centres[0] - 0.5 * step)
+        beam_table = tuple(float(c) for c in centres)
+        lo = float(centres[0] - 0.5 * (centres[1] - centres[0]))
         # the azimuth step of the fullest beam: the median gap between its sorted azimuths
         s, t = starts[beams][np.argmax(sizes[beams])], ends[beams][np.argmax(sizes[beams])]
         a = np.sort(az[order[s:t]])
@@ -108,16 +135,39 @@ def estimate_layout(points_s: np.ndarray) -> Layout:
     # the azimuth steps' phase (a circular mean), so that they fall at the columns' centres, not on edges
     ang = (phase_of + math.pi) / w * 2 * math.pi
     phase = (math.atan2(np.sin(ang).mean(), np.cos(ang).mean()) / (2 * math.pi) * w) if len(ang) else 0.5 * w
-    return Layout(rows=int(rows), cols=cols, elev0=lo, elev_step=float(step), az0=float(-math.pi + phase - 0.5 * w))
+    return Layout(rows=int(rows), cols=cols, elev0=lo, elev_step=float(step), az0=float(-math.pi + phase - 0.5 * w),
+                  beams=beam_table)
+
+
+def beam_layout(elevations, cols: int, az0: float = -math.pi) -> Layout:
+    """The layout of a spinning LiDAR with the given beam elevations (radians, any order; >= 2 distinct)
+    and `cols` azimuth steps a turn."""
+    b = np.unique(np.asarray(elevations, np.float64))
+    if len(b) < 2:
+        raise ValueError("a beam table needs at least 2 distinct elevations")
+    if len(b) > MAX_ROWS:
+        raise ValueError(f"a beam table of {len(b)} beams is more than {MAX_ROWS}")
+    return Layout(rows=len(b), cols=int(cols), elev0=float(b[0] - 0.5 * (b[1] - b[0])),
+                  elev_step=float(np.median(np.diff(b))), az0=float(az0), beams=tuple(float(x) for x in b))
+
+
+def _rows_of(el, layout: Layout, xp):
+    """(row [N] int32, inside [N] bool) of elevations [N] (radians): the nearest beam's row (boundaries
+    halfway between beams), or the uniform grid's."""
+    if layout.beams:
+        e = layout.edges
+        inner = xp.asarray(e[1:-1], el.dtype)
+        row = xp.searchsorted(inner, el, side="right").astype(xp.int32)
+        return row, (el >= e[0]) & (el < e[-1])
+    rowf = xp.floor((el - layout.elev0) / layout.elev_step)
+    return xp.clip(rowf, 0, layout.rows - 1).astype(xp.int32), (rowf >= 0) & (rowf < layout.rows)
 
 
 def pixels(points_s, layout: Layout, xp=np):
     """(row [N] int32, col [N] int32, range [N] float32, inside [N] bool: the row is in the image) of
     sensor-frame points [N, 3]."""
     el, az, rng = _angles(points_s, xp)
-    rowf = xp.floor((el - layout.elev0) / layout.elev_step)
-    inside = (rowf >= 0) & (rowf < layout.rows)
-    row = xp.clip(rowf, 0, layout.rows - 1).astype(xp.int32)
+    row, inside = _rows_of(el, layout, xp)
     col = xp.floor((az - layout.az0) / layout.col_step).astype(xp.int32) % layout.cols
     return row, col, rng.astype(xp.float32), inside
 
@@ -311,8 +361,67 @@ def min_pool_levels(image, layout: Layout, xp=np):
 
 def level_for(half_angle, layout: Layout, xp=np):
     """Index into FOOTPRINTS of the smallest window whose every ray lies within `half_angle` radians of a
-    direction, plus half a pixel (where the direction falls in its pixel); len(FOOTPRINTS) when none."""
+    direction, plus half a pixel (where the direction falls in its pixel); len(FOOTPRINTS) when none
+    (a uniform grid's footprints, `min_pool_levels`)."""
     s = max(layout.elev_step, layout.col_step)
     need = half_angle / s + 0.5
     radii = xp.asarray(FOOTPRINTS, xp.float32)
     return xp.sum(need[..., None] > radii, axis=-1).astype(xp.int32)
+
+
+def _row_powers(rows: int) -> int:
+    """How many row spans 2^p (p = 0, 1, ...) the beam tables hold: the largest is at most `rows`."""
+    return int(rows).bit_length()
+
+
+def footprint_levels(image, layout: Layout, xp=np):
+    """The range image [rows, cols] ready for `footprint_nearest`: a uniform grid's `min_pool_levels`
+    [L, rows, cols]; with a beam table [L, P, rows, cols]: level j's column window (`footprint_windows`,
+    wrapping) minimum, then its minimum over the 2^p rows (beams) from each row: any span of beams is two
+    overlapping lookups (a sparse table), so a footprint takes exactly the beams that bracket it."""
+    if not layout.beams:
+        return min_pool_levels(image, layout, xp)
+    out = []
+    for _, kc in footprint_windows(layout):
+        t = _window_min(image, kc, 1, xp)
+        tables = [t]
+        for p in range(1, _row_powers(layout.rows)):
+            t = xp.minimum(t, _neighbour(t, 1 << (p - 1), 0, xp))
+            tables.append(t)
+        out.append(xp.stack(tables))
+    return xp.stack(out)
+
+
+def footprint_nearest(levels, layout: Layout, points_s, half_size: float, xp=np):
+    """The nearest return among the rays that pass a sphere of radius half_size around each of points_s
+    [T, 3] (sensor frame): its footprint. Returns (nearest [T] float32 (inf: no return there), ok [T] bool:
+    the footprint lies inside the image and a window covers it, distance [T] float32).
+
+    levels: `footprint_levels` of the scan's image. Columns: the smallest window covering the sphere's
+    angular radius plus half a pixel. Rows, with a beam table: the beams from the last one at or below the
+    sphere to the first one at or above it (the beams that bracket it: with beams several degrees apart a
+    small voxel lies between two of them, and a ray that passes beside it says nothing of it, while the
+    beam below, which meets the ground before it, does), counted in beams whatever their spacing; a
+    footprint whose bracket leaves the image is never ok. A uniform grid: `level_for`'s square window."""
+    el, az, dist = _angles(points_s, xp)
+    half_angle = xp.arcsin(xp.clip(half_size / xp.maximum(dist, 1e-3), 0.0, 1.0))
+    col = xp.floor((az - layout.az0) / layout.col_step).astype(xp.int32) % layout.cols
+    n_lv = len(FOOTPRINTS)
+    if not layout.beams:
+        row, inside = _rows_of(el, layout, xp)
+        lv = level_for(half_angle, layout, xp)
+        return levels[xp.minimum(lv, n_lv - 1), row, col], inside & (lv < n_lv), dist.astype(xp.float32)
+    kc = xp.asarray([k for _, k in footprint_windows(layout)], xp.float32)
+    lv = xp.sum((half_angle / layout.col_step + 0.5)[..., None] > kc, axis=-1).astype(xp.int32)
+    beams = xp.asarray(layout.beams, el.dtype)
+    lo = xp.searchsorted(beams, el - half_angle, side="right").astype(xp.int32) - 1   # last beam at or below
+    hi = xp.searchsorted(beams, el + half_angle, side="left").astype(xp.int32)        # first beam at or above
+    ok = (lv < n_lv) & (lo >= 0) & (hi < layout.rows)
+    lo = xp.clip(lo, 0, layout.rows - 1)
+    hi = xp.clip(hi, lo, layout.rows - 1)
+    span = hi - lo + 1
+    p = sum((span >= (1 << k)).astype(xp.int32) for k in range(1, _row_powers(layout.rows)))
+    top = hi + 1 - xp.left_shift(xp.ones_like(p), p)
+    j = xp.minimum(lv, n_lv - 1)
+    nearest = xp.minimum(levels[j, p, lo, col], levels[j, p, top, col])
+    return nearest, ok, dist.astype(xp.float32)

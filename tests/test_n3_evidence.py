@@ -96,8 +96,8 @@ def test_static_surfaces_seen_at_grazing_incidence_are_never_void(with_evidence)
 def test_footprint_rule_frees_the_air_and_never_the_ground_at_grazing_incidence():
     """`seen_free` on its own, the sensor at 20 positions along the hall: the voxels touching the ground
     (seen at grazing incidence up to 20 m) are never free; the air voxels 0.8-1.0 m up that the scan looks
-    through are (>= 80 % of those 3-20 m away). A footprint of the centre's pixel alone (no window) frees
-    ground voxels: the window is what keeps them."""
+    through are (>= 80 % of those 3-20 m away). A footprint of the centre's pixel alone (the nearest beam at
+    its direction, no window) frees ground voxels: the window and the bracketing beams are what keep them."""
     ij = np.stack(np.meshgrid(np.arange(-20, 120), np.arange(-25, 25), indexing="ij"), -1).reshape(-1, 2)
     ground = np.concatenate([ij, np.zeros((len(ij), 1), int)], 1)                      # cubes [0, 0.2] in z
     air = np.concatenate([ij, np.full((len(ij), 1), 4)], 1)                             # cubes [0.8, 1.0]
@@ -126,9 +126,13 @@ def test_footprint_rule_frees_the_air_and_never_the_ground_at_grazing_incidence(
 @jax.jit(static_argnums=(3, 4))
 def _free(coords, pts, valid, lay, one_pixel, x):
     img = ri.min_range_image_jax(pts, valid, lay)
-    levels = (jnp.broadcast_to(img, (len(ri.FOOTPRINTS),) + img.shape) if one_pixel
-              else ri.min_pool_levels(img, lay, jnp))
     sensor = jnp.stack([x, jnp.float32(0.0), jnp.float32(1.7)])
+    if one_pixel:  # the planted defect: the footprint is the nearest beam's pixel at the centre's direction
+        p_s = (coords.astype(jnp.float32) + 0.5) * 0.2 - sensor
+        row, col, dist, inside = ri.pixels(p_s, lay, jnp)
+        half = 0.2 * 3 ** 0.5 / 2
+        return inside & (dist > 1.5) & (img[row, col] > dist + half + 0.1) & jnp.isfinite(img[row, col])
+    levels = ri.footprint_levels(img, lay, jnp)
     return evidence.seen_free(coords, 0.2, levels, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)
 
 
@@ -172,6 +176,6 @@ def test_dropouts_never_free_the_ground():
 @jax.jit(static_argnums=(3, 4))
 def _free_with_dropouts(coords, pts, valid, lay, block, x):
     img = ri.min_range_image_jax(pts, valid, lay)
-    levels = ri.min_pool_levels(ri.dropouts_block(img, lay, jnp) if block else img, lay, jnp)
+    levels = ri.footprint_levels(ri.dropouts_block(img, lay, jnp) if block else img, lay, jnp)
     sensor = jnp.stack([x, jnp.float32(0.0), jnp.float32(1.7)])
     return evidence.seen_free(coords, 0.2, levels, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)

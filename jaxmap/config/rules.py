@@ -120,7 +120,16 @@ def _preprocess_checks(p: PreprocessConfig, x: str):
             f"set {x}device=false or {x}outlier_mad=0")
     if p.normals in ("grid", "cube_knn"):
         yield from _grid_checks(p, x)
-    if p.image_rows > 0 and not (p.image_cols > 0 and p.image_elev_step_deg > 0):
+    if p.image_beams_deg and (len(set(p.image_beams_deg)) != len(p.image_beams_deg) or len(p.image_beams_deg) < 2):
+        yield (f"{x}image_beams_deg",), (
+            f"{x}image_beams_deg needs at least 2 distinct beam elevations (degrees), got {list(p.image_beams_deg)}")
+    elif p.image_beams_deg and p.image_rows not in (0, len(p.image_beams_deg)):
+        yield (f"{x}image_rows", f"{x}image_beams_deg"), (
+            f"{x}image_rows={p.image_rows} but {x}image_beams_deg lists {len(p.image_beams_deg)} beams: one row per "
+            f"beam (set image_rows=0 or {len(p.image_beams_deg)})")
+    elif p.image_beams_deg and p.image_rows > 0 and p.image_cols <= 0:
+        yield (f"{x}image_cols",), f"{x}image_rows={p.image_rows} sets the range image by hand: set {x}image_cols too"
+    elif p.image_rows > 0 and not p.image_beams_deg and not (p.image_cols > 0 and p.image_elev_step_deg > 0):
         yield (f"{x}image_rows", f"{x}image_cols", f"{x}image_elev_step_deg"), (
             f"{x}image_rows={p.image_rows} sets the range image by hand: set {x}image_cols and "
             f"{x}image_elev_step_deg (> 0) and {x}image_elev0_deg too, or image_rows=0 to read them off the first scan")

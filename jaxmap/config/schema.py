@@ -48,6 +48,10 @@ class PreprocessConfig:
     image_elev0_deg: float = 0.0     # ... elevation of row 0's lower edge (degrees; set with image_rows)
     image_elev_step_deg: float = 0.0  # ... rows' height (degrees; set with image_rows)
     image_az0_deg: float = -180.0    # ... azimuth where column 0 starts (degrees; set with image_rows)
+    image_beams_deg: tuple[float, ...] = ()  # ... a spinning LiDAR's beam table: every beam's elevation (degrees),
+                                     # one row per beam (a return goes to the nearest beam); () = read off the
+                                     # first scan (with image_rows 0) or a uniform grid (image_rows > 0: a sensor
+                                     # without beams); set it when the first scan is too sparse to read it
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ image (`jaxmap.range_image`, built from the whole raw scan, not the training cro
 
   seen free  every return whose ray passes through the voxel (its footprint: the pixels within
              asin(r_v / d) of the centre's direction, d its distance, r_v the half-diagonal, plus half a
-             pixel) lies beyond the voxel's far side by `margin` (pose and range error): the sensor looked
+             column; in elevation the sensor's beams that bracket it, `range_image.footprint_nearest`) lies beyond the voxel's far side by `margin` (pose and range error): the sensor looked
              through the whole voxel. A footprint without any return (sky, dropouts, beyond the sensor's
              range) says nothing; one reaching beyond the field of view is never free.
   hit        a scan point of this frame lies in the voxel.
@@ -83,18 +83,14 @@ def candidates(voxel_coord, n_voxels, leaf: float, sensor, max_range: float, off
 def seen_free(voxel_coord, leaf: float, levels, layout: ri.Layout, rotation, translation, margin: float,
               min_range: float):
     """[T] bool: which of the voxels (leaf-voxel coordinates [T, 3] int32, map frame) this frame saw free.
-    levels: `range_image.min_pool_levels` of the frame's range image [L, H, W]; rotation [3, 3]
-    R_map_sensor and translation [3] the sensor's pose in the map frame."""
+    levels: `range_image.footprint_levels` of the frame's range image; rotation [3, 3] R_map_sensor and
+    translation [3] the sensor's pose in the map frame."""
     centre = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - translation             # [T, 3] map frame
     # R^T c elementwise, not a matmul: a GPU's float32 matmul may round through TF32 (centimetres at 50 m)
     p_s = jnp.sum(centre[:, :, None] * rotation[None], axis=1)                        # [T, 3] sensor frame
-    row, col, dist, inside = ri.pixels(p_s, layout, jnp)
     half = leaf * math.sqrt(3.0) / 2.0
-    ang = jnp.arcsin(jnp.clip(half / jnp.maximum(dist, 1e-3), 0.0, 1.0))
-    lv = ri.level_for(ang, layout, jnp)
-    n_lv = len(ri.FOOTPRINTS)
-    ok = inside & (lv < n_lv) & (dist > max(min_range, half + margin))
-    nearest = levels[jnp.minimum(lv, n_lv - 1), row, col]   # [T]
+    nearest, ok, dist = ri.footprint_nearest(levels, layout, p_s, half, jnp)
+    ok = ok & (dist > max(min_range, half + margin))
     return ok & jnp.isfinite(nearest) & (nearest > dist + half + margin)
 
 

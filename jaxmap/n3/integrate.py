@@ -91,7 +91,7 @@ def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, vo
     retried). Returns (evidence, store, [] int32 voxels seen free, [] int32 voxels raised)."""
     v = ev.free_run.shape[0]
     hit = jnp.zeros((v,), bool).at[jnp.where(point_rows >= 0, point_rows, v)].set(True, mode="drop")
-    levels = range_image.min_pool_levels(range_image.dropouts_block(scan.image, static.image, jnp), static.image, jnp)
+    levels = range_image.footprint_levels(range_image.dropouts_block(scan.image, static.image, jnp), static.image, jnp)
     offset = (frame * n3evidence.TESTED_PER_FRAME) % v
     rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset)
     coords = voxel_coord[jnp.minimum(rows, v - 1)]

@@ -417,10 +417,12 @@ def _poses_at(path, arclengths) -> np.ndarray:
     return np.stack(poses)
 
 
-def beam_directions(elevations_deg: np.ndarray, azimuth_steps: int) -> np.ndarray:
-    """Unit ray directions in the LiDAR frame, beam-major: [beams*azimuth_steps, 3] float64, beams at
-    elevations_deg [beams] (`jaxmap.synth.beams`)."""
-    el = np.deg2rad(np.asarray(elevations_deg, np.float64))
+def beam_directions(beams, azimuth_steps: int) -> np.ndarray:
+    """Unit ray directions in the LiDAR frame, beam-major: [beams*azimuth_steps, 3] float64. beams: the
+    beams' elevations in degrees [B] (`jaxmap.synth.beams`), or a count of uniform beams."""
+    if np.ndim(beams) == 0:
+        beams = beam_patterns.elevations_deg("uniform", int(beams))
+    el = np.deg2rad(np.asarray(beams, np.float64))
     az = 2 * np.pi * np.arange(azimuth_steps) / azimuth_steps
     el, az = np.meshgrid(el, az, indexing="ij")
     d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
