@@ -215,28 +215,62 @@ def _neighbour(image, dr: int, dc: int, xp):
 GAP_PIXELS = 6   # veil test: past dropped-out neighbours, the first returns this many pixels away predict a return
 
 
-def _across_gap(image, raw, flat, rng, dr: int, dc: int, tol_m: float, xp):
+def _lookup(image, row, col, dr: int, dc: int, xp):
+    """[N] image[row + dr, (col + dc) mod cols] at pixels (row [N], col [N]): columns wrap around (a full
+    turn), rows beyond the image read inf. A gather of N values, not a shifted copy of the image."""
+    rows, cols = image.shape
+    rr = row + dr
+    v = image[xp.clip(rr, 0, rows - 1), (col + dc) % cols]
+    return xp.where((rr >= 0) & (rr < rows), v, xp.inf)
+
+
+def _offset_angle(layout: Layout, row, m: int, dr: int, dc: int, xp):
+    """[N] the angle (radians) from a pixel in row `row` [N] to the one m steps along (dr, dc): across the
+    beams the difference of their elevations (however unevenly spaced), along a beam m column steps."""
+    if not dr:
+        return xp.full(row.shape, m * dc * layout.col_step, xp.float32)
+    el = xp.asarray(row_elevations(layout), xp.float32)
+    return el[xp.clip(row + m * dr, 0, layout.rows - 1)] - el[row]
+
+
+def row_elevations(layout: Layout) -> tuple:
+    """Each row's elevation (radians, [rows]): its beam's, or the uniform row's centre."""
+    if layout.beams:
+        return layout.beams
+    return tuple(layout.elev0 + (r + 0.5) * layout.elev_step for r in range(layout.rows))
+
+
+def _inverse_line(a1, a2, t, xp):
+    """The range at position t on the line through (0, a1) and (1, a2) in inverse range: a plane's inverse
+    range is a linear function of the ray's direction, so along a column or a beam it is nearly linear in
+    the angle (exact to the cosine's curvature), whatever the spacing and however the range itself curves
+    (the ground's rings at range). inf where the line leaves the plane's side (a grazing plane's horizon)."""
+    inv = 1.0 / a1 + (1.0 / xp.where(xp.isfinite(a2), a2, a1) - 1.0 / a1) * t
+    return xp.where(inv > 0, 1.0 / xp.where(inv > 0, inv, 1.0), xp.inf)
+
+
+def _across_gap(image, raw, row, col, rng, layout, dr: int, dc: int, tol_m: float, xp):
     """[N] bool, the veil test across dropouts: a surface seen at grazing incidence loses most of its returns,
     and those left lack a direct neighbour; the first returns on both sides past the lost ones (within
-    GAP_PIXELS, along the beam (dc) or across the beams (dr)) predict it, linearly in the pixel, and along
-    the beam one side alone does (its range: the ground's rings). Only where the sensor gave no return
-    next to it (`raw`, the image before the veil): a mixed pixel has both direct neighbours, the surfaces
-    it mixes, and one beside a mixed pixel dropped in the first pass is no gap."""
-    def at(img):
-        return img.reshape(-1)[flat]
-
+    GAP_PIXELS, along the beam (dc) or across the beams (dr)) predict it, by their inverse ranges at its
+    angle between them, and along the beam one side alone does (its range: the ground's rings). Only where
+    the sensor gave no return next to it (`raw`, the image before the veil): a mixed pixel has both direct
+    neighbours, the surfaces it mixes, and one beside a mixed pixel dropped in the first pass is no gap."""
     def first_return(sign):
-        found, k = at(_neighbour(image, sign * dr, sign * dc, xp)), xp.ones(rng.shape, xp.float32)
+        found = _lookup(image, row, col, sign * dr, sign * dc, xp)
+        ang = _offset_angle(layout, row, sign, dr, dc, xp)
         for j in range(2, GAP_PIXELS + 1):
             take = ~xp.isfinite(found)
-            found = xp.where(take, at(_neighbour(image, j * sign * dr, j * sign * dc, xp)), found)
-            k = xp.where(take, float(j), k)
-        return found, k
+            found = xp.where(take, _lookup(image, row, col, j * sign * dr, j * sign * dc, xp), found)
+            ang = xp.where(take, _offset_angle(layout, row, j * sign, dr, dc, xp), ang)
+        return found, ang
 
-    (a_l, k_l), (a_r, k_r) = first_return(-1), first_return(1)
-    gap = ~xp.isfinite(at(_neighbour(raw, -dr, -dc, xp))) | ~xp.isfinite(at(_neighbour(raw, dr, dc, xp)))
+    (a_l, e_l), (a_r, e_r) = first_return(-1), first_return(1)
+    gap = (~xp.isfinite(_lookup(raw, row, col, -dr, -dc, xp))) | (~xp.isfinite(_lookup(raw, row, col, dr, dc, xp)))
     both = xp.isfinite(a_l) & xp.isfinite(a_r)
-    pred = xp.where(both, a_l + (xp.where(both, a_r, 0.0) - xp.where(both, a_l, 0.0)) * (k_l / (k_l + k_r)),
+    span = xp.where(both, e_r - e_l, 1.0)
+    t = xp.where(both & (xp.abs(span) > 0), -e_l / xp.where(xp.abs(span) > 0, span, 1.0), 0.5)
+    pred = xp.where(both, _inverse_line(xp.where(both, a_l, 1.0), xp.where(both, a_r, 1.0), t, xp),
                     xp.minimum(a_l, a_r) if dc else xp.inf)
     return gap & (xp.abs(rng - pred) <= tol_m)
 
@@ -247,18 +281,18 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
 
     A mixed pixel lies between a foreground and a background surface: along its beam it continues
     neither its left nor its right neighbours, and neither do the beams above and below it at its
-    azimuth. A return on a real surface continues at least one side in at least one direction: the
-    linear extrapolation of the two pixels beyond a neighbour (2 a1 - a2) predicts it within tol_m (or,
-    where the second pixel is empty, the neighbour's range does), or, past dropouts, the first returns
-    beyond them (`_across_gap`). Grazing surfaces (ranges rising steadily along the beam) pass the
-    extrapolation; an isolated return (an outlier) has no neighbour that predicts it.
+    azimuth. A return on a real surface continues at least one side in at least one direction: the two
+    pixels beyond a neighbour predict it within tol_m (their inverse ranges extrapolated to its angle, in
+    the sensor's own beam elevations: a plane's inverse range is linear in the direction; where the second
+    pixel is empty, the neighbour's range does), or, past dropouts, the first returns beyond them
+    (`_across_gap`). Grazing surfaces (ranges rising steadily along the beam) pass the extrapolation; an
+    isolated return (an outlier) has no neighbour that predicts it.
 
     points_s [N, 3] sensor frame (the whole raw scan: neighbours must not be cropped away); valid [N]
     bool or None; tol_m: a multiple of the range noise (0.15 m for 2 cm noise). Pixels holding several
     returns test each against the image's nearest ones.
     """
     row, col, rng, inside = pixels(points_s, layout, xp)
-    flat = row * layout.cols + col
     if valid is None:
         valid = xp.ones(points_s.shape[0], bool)
 
@@ -266,25 +300,26 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
         return min_range_image(points_s, layout, ok) if xp is np else min_range_image_jax(points_s, ok, layout)
 
     def supported(image, raw):
-        def at(img):
-            return img.reshape(-1)[flat]
-
-        def continues(d1, d2):
-            a1, a2 = at(_neighbour(image, *d1, xp)), at(_neighbour(image, *d2, xp))
+        def continues(dr, dc):
+            a1, a2 = _lookup(image, row, col, dr, dc, xp), _lookup(image, row, col, 2 * dr, 2 * dc, xp)
+            e1, e2 = _offset_angle(layout, row, 1, dr, dc, xp), _offset_angle(layout, row, 2, dr, dc, xp)
+            step = xp.where(xp.abs(e2 - e1) > 0, e2 - e1, 1.0)
             # three returns in a line (two mixed pixels that happen to lie near each other are not); with the
             # pixel beyond the neighbour empty, the neighbour's range
-            pred = xp.where(xp.isfinite(a2), 2.0 * a1 - xp.where(xp.isfinite(a2), a2, 0.0), a1)
+            if dc:   # along a beam: evenly spaced azimuths, the range's own line (as before the beam tables)
+                pred = xp.where(xp.isfinite(a2), 2.0 * a1 - xp.where(xp.isfinite(a2), a2, 0.0), a1)
+            else:
+                pred = xp.where(xp.isfinite(a2), _inverse_line(xp.where(xp.isfinite(a1), a1, 1.0), a2, -e1 / step, xp), a1)
             return xp.isfinite(a1) & (xp.abs(rng - pred) <= tol_m)
 
-        def known(d):
-            return xp.isfinite(at(_neighbour(image, *d, xp)))
+        def known(dr, dc):
+            return xp.isfinite(_lookup(image, row, col, dr, dc, xp))
 
-        ok = (continues((0, -1), (0, -2)) | continues((0, 1), (0, 2))
-              | continues((-1, 0), (-2, 0)) | continues((1, 0), (2, 0))
-              | _across_gap(image, raw, flat, rng, 0, 1, tol_m, xp)
-              | _across_gap(image, raw, flat, rng, 1, 0, tol_m, xp))
+        ok = (continues(0, -1) | continues(0, 1) | continues(-1, 0) | continues(1, 0)
+              | _across_gap(image, raw, row, col, rng, layout, 0, 1, tol_m, xp)
+              | _across_gap(image, raw, row, col, rng, layout, 1, 0, tol_m, xp))
         # a return with no neighbour at all in its row and column says nothing against it (a lone beam hit)
-        has_any = known((0, -1)) | known((0, 1)) | known((-1, 0)) | known((1, 0))
+        has_any = known(0, -1) | known(0, 1) | known(-1, 0) | known(1, 0)
         return ok | ~has_any | ~inside
 
     # twice: a mixed pixel that a neighbouring mixed pixel happened to continue loses that support once

@@ -59,13 +59,14 @@ def test_every_beam_gets_its_own_row(pattern, seed):
 
 @pytest.mark.parametrize("pattern", ["hdl64", "vlp32"])
 def test_veil_keeps_the_walls_and_the_ground_of_both_sensors(pattern):
-    """The veil filter keeps >= 99.5 % of a plain street's returns (walls, end wall, ground; 2 cm range
-    noise) on both sensors' beams; on uniform rows it drops true returns as mixed pixels (measured 99.18 %
-    kept on the HDL-64E, 97.98 % on the VLP-32C)."""
+    """The veil filter keeps >= 99.9 % of a plain street's returns (walls, end wall, ground; 2 cm range
+    noise) on both sensors' beams (measured 100.000 %); on uniform rows it drops true returns as mixed pixels
+    (measured 99.79 % kept on the HDL-64E, 98.00 % on the VLP-32C; the veil before the beam tables, whose
+    rows were uniform and whose extrapolation was linear in the range and the row: 99.18 and 97.98 %)."""
     pts, _, _ = _scan(pattern, noise=0.02)
     lay = ri.estimate_layout(pts)
-    assert ri.veil_keep(pts, lay, 0.15).mean() >= 0.995
-    assert ri.veil_keep(pts, _uniform_rows(lay), 0.15).mean() < 0.995
+    assert ri.veil_keep(pts, lay, 0.15).mean() >= 0.999
+    assert ri.veil_keep(pts, _uniform_rows(lay), 0.15).mean() < 0.999
 
 
 def _voxels():
