@@ -133,3 +133,21 @@ def test_a_beam_table_from_the_config_and_the_footprint_span():
     nearest, ok, dist = ri.footprint_nearest(levels, lay, p.astype(np.float32), 0.05)
     assert nearest[0] == 3.0 and nearest[1] == 6.0 and ok[:2].all()
     assert not ok[2] and not ok[3]
+
+
+def test_synth_city_scans_with_a_named_sensor(tmp_path):
+    """`jaxmap synth city --beams vlp32`: 32 beams at the VLP-32C's elevations, 1800 azimuth steps, the table
+    in meta.json, and a layout read off its first scan that is that table."""
+    import json
+
+    from jaxmap.cli import main
+    from jaxmap.io import open_sequence
+
+    assert main(["synth", "city", "--small", "--frames", "1", "--beams", "vlp32", "--out", str(tmp_path / "v")]) == 0
+    meta = json.loads((tmp_path / "v" / "meta.json").read_text())["sensor"]
+    assert (meta["beams"], meta["azimuth_steps"], meta["beam_pattern"]) == (32, 1800, "vlp32")
+    np.testing.assert_allclose(meta["beam_elevations_deg"], elevations_deg("vlp32"))
+    lay = ri.estimate_layout(next(iter(open_sequence(str(tmp_path / "v")))).points)
+    np.testing.assert_allclose(np.degrees(lay.beams), elevations_deg("vlp32"), atol=1e-3)
+    with pytest.raises(SystemExit, match="unknown beam pattern"):
+        main(["synth", "city", "--small", "--beams", "vlp16", "--out", str(tmp_path / "x")])

@@ -522,7 +522,7 @@ def test_city_traffic(tmp_path):
 
 def _grid_cells(points, beams=32, az=512):
     """(beam, azimuth step) of each LiDAR-frame point [N,3] of the small preset's organised scan."""
-    from jaxmap.synth.city import ELEVATION_DEG
+    from jaxmap.synth.beams import UNIFORM_DEG as ELEVATION_DEG
 
     p = points.astype(np.float64)
     el = np.rad2deg(np.arcsin(p[:, 2] / np.linalg.norm(p, axis=1)))
