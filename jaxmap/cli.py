@@ -10,8 +10,9 @@ import sys
 
 def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = None,
                      example: str = "train.iters=20") -> None:
+    default = f" (default: {default_config})" if default_config else ""
     p.add_argument("config", nargs="?" if default_config is not None else None, default=default_config or None,
-                   help="YAML config (see configs/)")
+                   help=f"a shipped config by name{default} or a YAML file; `jaxmap configs` lists the names")
     p.add_argument("--data", help="sequence directory; overrides data.path")
     p.add_argument("--out", help="run directory; overrides output")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -126,12 +127,12 @@ def _demo_args(sub) -> None:
 def _prior_args(sub) -> None:
     p = sub.add_parser("prior", help="train or evaluate the equivariant encoder/decoder prior")
     p.add_argument("action", choices=["train", "eval"])
-    _add_config_args(p, default_config="configs/prior.yaml", example="train.steps=2000")
+    _add_config_args(p, default_config="prior", example="train.steps=2000")
 
 
 def _imt_args(sub) -> None:
     p = sub.add_parser("imt", help="transformable latent map of a sequence: encode, fuse, mesh, metrics")
-    _add_config_args(p, default_config="configs/room_imt.yaml", example="map.voxel_size_m=0.05")
+    _add_config_args(p, default_config="room_imt", example="map.voxel_size_m=0.05")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
@@ -139,7 +140,7 @@ def _imt_args(sub) -> None:
 
 def _slam_args(sub) -> None:
     p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
-    _add_config_args(p, default_config="configs/room_slam.yaml", example="frontend.odometry.method=kiss_icp")
+    _add_config_args(p, default_config="room_slam", example="frontend.odometry.method=kiss_icp")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
@@ -158,6 +159,12 @@ def _localize_args(sub) -> None:
     p.add_argument("--points", type=int, default=4096, help="scan points used per frame (a random subset)")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
+
+
+def _configs_args(sub) -> None:
+    p = sub.add_parser("configs", help="list the configs shipped with jaxmap (every command takes them by name)")
+    p.add_argument("name", nargs="?", default=None,
+                   help="print this shipped config (YAML), e.g. `jaxmap configs city > my.yaml` to start your own")
 
 
 def _info_args(sub) -> None:
@@ -202,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true",
                         help="show the Python traceback of an error (by default: one line saying what to fix)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _localize_args, _info_args, _view_args, _bench_args):
+    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _localize_args, _configs_args, _info_args, _view_args, _bench_args):
         add(sub)
     return parser
 

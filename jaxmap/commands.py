@@ -10,7 +10,7 @@ import json
 import logging
 import os
 
-from jaxmap.config import ConfigError, config_from_args, lattice_problem, load_config
+from jaxmap.config import ConfigError, config_from_args, lattice_problem, load_config, shipped_configs
 from jaxmap.errors import CheckpointError, DataError, NoCheckpointError
 from jaxmap.rundir import claim, exit_code, inspect, output_dir, output_file
 
@@ -106,7 +106,8 @@ def map(args) -> int:  # noqa: A001 - the command's name
         out = args.resume
     else:
         if not args.config:
-            raise ConfigError("jaxmap map needs a CONFIG (e.g. configs/city.yaml) or --resume RUN_DIR")
+            raise ConfigError("jaxmap map needs a CONFIG: a YAML file or a shipped config's name (one of: "
+                              f"{', '.join(shipped_configs())}), e.g. `jaxmap map city --data DIR`; or --resume RUN_DIR")
         cfg = config_from_args(args)  # validated before the run directory is touched
         out = cfg.output
     try:
@@ -157,15 +158,15 @@ def mesh(args) -> int:
 
 
 def demo(args) -> int:
-    """`jaxmap demo`: synthesize the city (once), map it with configs/city.yaml, mesh, evaluate, say where
-    it went."""
-    from jaxmap.n3.run import city_config_path, map_sequence
+    """`jaxmap demo`: synthesize the city (once), map it with the shipped config `city`, mesh, evaluate,
+    say where it went."""
+    from jaxmap.n3.run import map_sequence
     from jaxmap.synth.city import generate_city
 
     if not os.path.isfile(os.path.join(args.data, "poses.txt")):
         log.info("synthesizing the demo city into %s", args.data)
         generate_city(args.data, seed=0)
-    cfg = load_config(city_config_path(), [f"data.path={args.data}", f"output={args.out}"])
+    cfg = load_config("city", [f"data.path={args.data}", f"output={args.out}"])
     with claim(args.out, "map", overwrite=True):  # `make demo` again replaces the last demo run
         summary = map_sequence(cfg, args.out)
     m = summary.get("metrics", {})
@@ -244,11 +245,7 @@ def prior(args) -> int:
     from jaxmap.imt.prior import DEFAULT_CONFIG, WEIGHTS_FILE, load_prior, shipped_weights_path
     from jaxmap.imt.training import make_val_set, summary_of, train
 
-    # the CLI default and absent (an installed package run outside the repository): the built-in defaults,
-    # which equal configs/prior.yaml
     path = args.config or DEFAULT_CONFIG
-    if path == DEFAULT_CONFIG and not os.path.isfile(path):
-        path = None
     overrides = list(args.overrides) + ([f"output={args.out}"] if args.out and args.action == "train" else [])
     cfg = load_config(path, overrides, schema=PriorConfig)
     if args.action == "train":
@@ -260,6 +257,38 @@ def prior(args) -> int:
     out = {"weights": weights or shipped_weights_path(), **summary_of(model, cfg, make_val_set(cfg), {}),
            "trained": {k: meta[k] for k in ("steps", "train_time_s", "total_time_s") if k in meta}}
     print(json.dumps(out))
+    return 0
+
+
+def configs(args) -> int:
+    """`jaxmap configs [NAME]`: the shipped configs' names with the first line of each, or one of them
+    printed (YAML, to copy and edit)."""
+    from jaxmap.config import resolve_config, shipped_config_dir, shipped_config_path
+
+    if args.name:
+        with open(resolve_config(shipped_config_path(args.name) or args.name)) as f:
+            print(f.read(), end="")
+        return 0
+    import dataclasses
+
+    import yaml
+
+    from jaxmap.config import ImtConfig, MapConfig, PriorConfig, SlamConfig
+
+    names = shipped_configs()
+    width = max(len(n) for n in names)
+    for name in names:
+        with open(shipped_config_path(name)) as f:
+            text = f.read()
+        first = text.split("\n", 1)[0].lstrip("# ").strip()
+        keys = set(yaml.safe_load(text) or {})
+        # the command is the first whose schema holds every top-level key (a slam config is an imt one and more)
+        command = next((c for c, s in (("map", MapConfig), ("imt", ImtConfig), ("slam", SlamConfig),
+                                       ("prior", PriorConfig)) if keys <= {f.name for f in dataclasses.fields(s)}), "?")
+        first = first.removeprefix(f"jaxmap {command}").lstrip(": ")  # (the command is in its own column)
+        print(f"{name:<{width}}  jaxmap {command:<6} {first if len(first) <= 80 else first[:77] + '...'}")
+    print(f"\n(in {shipped_config_dir()}; every command takes a name in place of a YAML path, e.g. "
+          "`jaxmap map city --data DIR`; `jaxmap configs NAME > my.yaml` to start your own)")
     return 0
 
 
