@@ -70,19 +70,34 @@ def _synth_args(sub) -> None:
 
 
 def _eval_args(sub) -> None:
-    p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
-    p.add_argument("mesh")
-    p.add_argument("--gt", required=True, help="sequence directory with gt_points.ply and scans")
-    p.add_argument("--threshold", type=float, default=0.1, help="F-score threshold in metres")
-    p.add_argument("--cull", type=float, default=0.3, help="cull GT farther than this from every scan point (m)")
-    p.add_argument("--radius", type=float, default=-1.0, help="keep GT within this range of a sensor position (m)")
-    p.add_argument("--max-range", type=float, default=-1.0,
-                   help="count as observed only scan points within this range of their sensor (the mapper's crop)")
+    p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth",
+                       description="Scores a mesh against a sequence's ground truth. The mesh of a jaxmap map or "
+                                   "imt run (its directory, or a mesh file in it) is scored as the run scored it "
+                                   "(its metrics.json): the ground truth cropped to the frames it mapped, its range "
+                                   "crop and eval settings; the options below override them. Other meshes need "
+                                   "--gt; every frame counts unless --frames says which.")
+    p.add_argument("mesh", help="a mesh file, or a run directory (its mesh.ply)")
+    p.add_argument("--gt", default=None,
+                   help="sequence directory with gt_points.ply and scans (default: the run's data.path)")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="the frames whose scans count as observed: A to B-1 (default: the frames the run mapped, "
+                        "else all; a warning says when they are fewer than the sequence's)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="F-score threshold in metres (default: the run's eval.threshold_m, else 0.1)")
+    p.add_argument("--cull", type=float, default=None,
+                   help="cull GT farther than this from every scan point (m; default: the run's, else 0.3)")
+    p.add_argument("--radius", type=float, default=None,
+                   help="keep GT within this range of a sensor position (m; default: the run's eval.eval_radius_m, "
+                        "else -1: no limit)")
+    p.add_argument("--max-range", type=float, default=None,
+                   help="count as observed only scan points within this range of their sensor (the mapper's crop; "
+                        "default: the run's preprocess.max_range_m, else -1: no limit)")
     p.add_argument("--json-out", default=None, metavar="PATH",
                    help="also write the metrics to this JSON file (they are always printed as one JSON line)")
     p.add_argument("--protocol", choices=["shine", "surface"], default="shine",
                    help="shine: N3/SHINE eval_mesh (default); surface: also completion_surface_cm (GT -> mesh, exact)")
-    p.add_argument("--samples", type=int, default=10_000_000, help="points sampled on the cropped mesh (SHINE: 10M)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="points sampled on the cropped mesh (default: the run's eval.n_samples, else SHINE's 10M)")
     p.add_argument("--no-floor", action="store_true",
                    help="skip the protocol floor (the GT mesh evaluated as the prediction, under 'floor')")
     p.add_argument("--no-ghost", action="store_true",

@@ -61,18 +61,17 @@ def synth(args) -> int:
 
 
 def eval(args) -> int:  # noqa: A001 - the command's name
-    """`jaxmap eval MESH GT_DIR`: the standard protocol's metrics of a mesh (with the SA / DA of the points
-    the run trained on, when the mesh's run directory has them for this data)."""
-    from jaxmap.metrics import evaluate_mesh_file, format_metrics
+    """`jaxmap eval MESH|RUN [--gt DIR] [--frames A:B]`: the standard protocol's metrics of a mesh, a run's
+    as the run scored it (`jaxmap.eval_run`; with the SA / DA of the points the run trained on, when the
+    mesh's run directory has them for this data)."""
+    from jaxmap.eval_run import evaluate
+    from jaxmap.metrics import format_metrics
     from jaxmap.metrics.dynamic import scores_of_run
 
     if args.json_out:
         output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
-    m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
-                           cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
-                           n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor,
-                           ghost=not args.no_ghost)
-    scores = scores_of_run(args.mesh, args.gt)
+    m, mesh, data = evaluate(args)
+    scores = scores_of_run(mesh, data)
     if scores:
         m["dynamic_points"] = scores
     print(format_metrics(m, "mesh"))
