@@ -214,7 +214,7 @@ def slam(args) -> int:
 
 def localize(args) -> int:
     """`jaxmap localize MAP --data SEQ [--init POSE] [--out RUN]`: localise a sequence in a saved N3 map."""
-    from jaxmap.slam.localize import localize_sequence, read_init, summary_table
+    from jaxmap.slam.localize import frame_ranges, localize_sequence, read_init, summary_table
     from jaxmap.slam.track import TrackOptions
 
     init = read_init(args.init) if args.init else None
@@ -230,6 +230,10 @@ def localize(args) -> int:
     if "position_error_cm" in m:
         brief["position_error_median_cm"] = m["position_error_cm"]["median"]
         brief["position_error_max_cm"] = m["position_error_cm"]["max"]
+    if m["lost_frames"]:
+        brief["lost_frames"] = frame_ranges(m["lost_frames"])
+        if "localised_position_error_cm" in m:
+            brief["localised_position_error_median_cm"] = m["localised_position_error_cm"]["median"]
     print(json.dumps(brief))
     return 0
 
