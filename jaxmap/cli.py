@@ -38,7 +38,11 @@ def _synth_args(sub) -> None:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--small", action="store_true", help="small preset (tests, quick looks)")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default per preset)")
+    p.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="the preset's whole closed loop in N frames, evenly spaced (default per preset: city 130, "
+                        "--small 64, room 120, room --small 10): fewer frames are farther apart, the drive is not "
+                        "shorter (--long: its first N frames). For part of a drive, map its first frames: "
+                        "jaxmap map city --data DIR --set data.end_frame=N")
     p.add_argument("--noise", type=float, default=0.0, help="range noise std in metres")
     p.add_argument("--pedestrians", action="store_true", help="city: add moving pedestrians (not in the GT)")
     p.add_argument("--long", action="store_true",

@@ -56,6 +56,11 @@ def synth(args) -> int:
         stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
     except ValueError as e:  # (options that do not combine, a drive with no room for the parking cars)
         raise SystemExit(f"jaxmap synth: {e}") from None
+    if args.frames is not None and not args.long:  # (a shorter drive is what users often expect of --frames)
+        spacing = (stats.get("trajectory") or {}).get("frame_spacing_m")
+        log.info("synth: --frames %d spreads the whole loop over %d frames%s; for part of the drive, map its "
+                 "first frames instead: --set data.end_frame=N", args.frames, args.frames,
+                 f" ({spacing:.2f} m apart)" if spacing else "")
     print(json.dumps(stats))
     return 0
 
