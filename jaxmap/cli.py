@@ -10,8 +10,9 @@ import sys
 
 def _add_config_args(p: argparse.ArgumentParser, default_config: str | None = None,
                      example: str = "train.iters=20") -> None:
+    default = f" (default: {default_config})" if default_config else ""
     p.add_argument("config", nargs="?" if default_config is not None else None, default=default_config or None,
-                   help="YAML config (see configs/)")
+                   help=f"a shipped config by name{default} or a YAML file; `jaxmap configs` lists the names")
     p.add_argument("--data", help="sequence directory; overrides data.path")
     p.add_argument("--out", help="run directory; overrides output")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -37,7 +38,11 @@ def _synth_args(sub) -> None:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--small", action="store_true", help="small preset (tests, quick looks)")
-    p.add_argument("--frames", type=int, default=None, help="number of frames (default per preset)")
+    p.add_argument("--frames", type=int, default=None, metavar="N",
+                   help="the preset's whole closed loop in N frames, evenly spaced (default per preset: city 130, "
+                        "--small 64, room 120, room --small 10): fewer frames are farther apart, the drive is not "
+                        "shorter (--long: its first N frames). For part of a drive, map its first frames: "
+                        "jaxmap map city --data DIR --set data.end_frame=N")
     p.add_argument("--noise", type=float, default=0.0, help="range noise std in metres")
     p.add_argument("--pedestrians", action="store_true", help="city: add moving pedestrians (not in the GT)")
     p.add_argument("--long", action="store_true",
@@ -72,19 +77,34 @@ def _synth_args(sub) -> None:
 
 
 def _eval_args(sub) -> None:
-    p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth")
-    p.add_argument("mesh")
-    p.add_argument("--gt", required=True, help="sequence directory with gt_points.ply and scans")
-    p.add_argument("--threshold", type=float, default=0.1, help="F-score threshold in metres")
-    p.add_argument("--cull", type=float, default=0.3, help="cull GT farther than this from every scan point (m)")
-    p.add_argument("--radius", type=float, default=-1.0, help="keep GT within this range of a sensor position (m)")
-    p.add_argument("--max-range", type=float, default=-1.0,
-                   help="count as observed only scan points within this range of their sensor (the mapper's crop)")
+    p = sub.add_parser("eval", help="reconstruction metrics of a mesh against a sequence's ground truth",
+                       description="Scores a mesh against a sequence's ground truth. The mesh of a jaxmap map or "
+                                   "imt run (its directory, or a mesh file in it) is scored as the run scored it "
+                                   "(its metrics.json): the ground truth cropped to the frames it mapped, its range "
+                                   "crop and eval settings; the options below override them. Other meshes need "
+                                   "--gt; every frame counts unless --frames says which.")
+    p.add_argument("mesh", help="a mesh file, or a run directory (its mesh.ply)")
+    p.add_argument("--gt", default=None,
+                   help="sequence directory with gt_points.ply and scans (default: the run's data.path)")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="the frames whose scans count as observed: A to B-1 (default: the frames the run mapped, "
+                        "else all; a warning says when they are fewer than the sequence's)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="F-score threshold in metres (default: the run's eval.threshold_m, else 0.1)")
+    p.add_argument("--cull", type=float, default=None,
+                   help="cull GT farther than this from every scan point (m; default: the run's, else 0.3)")
+    p.add_argument("--radius", type=float, default=None,
+                   help="keep GT within this range of a sensor position (m; default: the run's eval.eval_radius_m, "
+                        "else -1: no limit)")
+    p.add_argument("--max-range", type=float, default=None,
+                   help="count as observed only scan points within this range of their sensor (the mapper's crop; "
+                        "default: the run's preprocess.max_range_m, else -1: no limit)")
     p.add_argument("--json-out", default=None, metavar="PATH",
                    help="also write the metrics to this JSON file (they are always printed as one JSON line)")
     p.add_argument("--protocol", choices=["shine", "surface"], default="shine",
                    help="shine: N3/SHINE eval_mesh (default); surface: also completion_surface_cm (GT -> mesh, exact)")
-    p.add_argument("--samples", type=int, default=10_000_000, help="points sampled on the cropped mesh (SHINE: 10M)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="points sampled on the cropped mesh (default: the run's eval.n_samples, else SHINE's 10M)")
     p.add_argument("--no-floor", action="store_true",
                    help="skip the protocol floor (the GT mesh evaluated as the prediction, under 'floor')")
     p.add_argument("--no-ghost", action="store_true",
@@ -129,12 +149,12 @@ def _demo_args(sub) -> None:
 def _prior_args(sub) -> None:
     p = sub.add_parser("prior", help="train or evaluate the equivariant encoder/decoder prior")
     p.add_argument("action", choices=["train", "eval"])
-    _add_config_args(p, default_config="configs/prior.yaml", example="train.steps=2000")
+    _add_config_args(p, default_config="prior", example="train.steps=2000")
 
 
 def _imt_args(sub) -> None:
     p = sub.add_parser("imt", help="transformable latent map of a sequence: encode, fuse, mesh, metrics")
-    _add_config_args(p, default_config="configs/room_imt.yaml", example="map.voxel_size_m=0.05")
+    _add_config_args(p, default_config="room_imt", example="map.voxel_size_m=0.05")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
@@ -142,7 +162,7 @@ def _imt_args(sub) -> None:
 
 def _slam_args(sub) -> None:
     p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
-    _add_config_args(p, default_config="configs/room_slam.yaml", example="frontend.odometry.method=kiss_icp")
+    _add_config_args(p, default_config="room_slam", example="frontend.odometry.method=kiss_icp")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)
@@ -161,6 +181,12 @@ def _localize_args(sub) -> None:
     p.add_argument("--points", type=int, default=4096, help="scan points used per frame (a random subset)")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
+
+
+def _configs_args(sub) -> None:
+    p = sub.add_parser("configs", help="list the configs shipped with jaxmap (every command takes them by name)")
+    p.add_argument("name", nargs="?", default=None,
+                   help="print this shipped config (YAML), e.g. `jaxmap configs city > my.yaml` to start your own")
 
 
 def _info_args(sub) -> None:
@@ -205,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true",
                         help="show the Python traceback of an error (by default: one line saying what to fix)")
     sub = parser.add_subparsers(dest="command", required=True)
-    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _localize_args, _info_args, _view_args, _bench_args):
+    for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _localize_args, _configs_args, _info_args, _view_args, _bench_args):
         add(sub)
     return parser
 

@@ -10,7 +10,7 @@ import json
 import logging
 import os
 
-from jaxmap.config import ConfigError, config_from_args, lattice_problem, load_config
+from jaxmap.config import ConfigError, config_from_args, lattice_problem, load_config, shipped_configs
 from jaxmap.errors import CheckpointError, DataError, NoCheckpointError
 from jaxmap.rundir import claim, exit_code, inspect, output_dir, output_file
 
@@ -62,23 +62,27 @@ def synth(args) -> int:
         stats = gen(args.out, seed=args.seed, small=args.small, n_frames=args.frames, noise_m=args.noise, **kw)
     except ValueError as e:  # (options that do not combine, a drive with no room for the parking cars)
         raise SystemExit(f"jaxmap synth: {e}") from None
+    if args.frames is not None and not args.long:  # (a shorter drive is what users often expect of --frames)
+        spacing = (stats.get("trajectory") or {}).get("frame_spacing_m")
+        log.info("synth: --frames %d spreads the whole loop over %d frames%s; for part of the drive, map its "
+                 "first frames instead: --set data.end_frame=N", args.frames, args.frames,
+                 f" ({spacing:.2f} m apart)" if spacing else "")
     print(json.dumps(stats))
     return 0
 
 
 def eval(args) -> int:  # noqa: A001 - the command's name
-    """`jaxmap eval MESH GT_DIR`: the standard protocol's metrics of a mesh (with the SA / DA of the points
-    the run trained on, when the mesh's run directory has them for this data)."""
-    from jaxmap.metrics import evaluate_mesh_file, format_metrics
+    """`jaxmap eval MESH|RUN [--gt DIR] [--frames A:B]`: the standard protocol's metrics of a mesh, a run's
+    as the run scored it (`jaxmap.eval_run`; with the SA / DA of the points the run trained on, when the
+    mesh's run directory has them for this data)."""
+    from jaxmap.eval_run import evaluate
+    from jaxmap.metrics import format_metrics
     from jaxmap.metrics.dynamic import scores_of_run
 
     if args.json_out:
         output_file(args.json_out, "--json-out")  # before the metrics are computed, not after
-    m = evaluate_mesh_file(args.mesh, args.gt, threshold_m=args.threshold,
-                           cull_distance_m=args.cull, eval_radius_m=args.radius, max_range_m=args.max_range,
-                           n_samples=args.samples, protocol=args.protocol, floor=not args.no_floor,
-                           ghost=not args.no_ghost)
-    scores = scores_of_run(args.mesh, args.gt)
+    m, mesh, data = evaluate(args)
+    scores = scores_of_run(mesh, data)
     if scores:
         m["dynamic_points"] = scores
     print(format_metrics(m, "mesh"))
@@ -112,7 +116,8 @@ def map(args) -> int:  # noqa: A001 - the command's name
         out = args.resume
     else:
         if not args.config:
-            raise ConfigError("jaxmap map needs a CONFIG (e.g. configs/city.yaml) or --resume RUN_DIR")
+            raise ConfigError("jaxmap map needs a CONFIG: a YAML file or a shipped config's name (one of: "
+                              f"{', '.join(shipped_configs())}), e.g. `jaxmap map city --data DIR`; or --resume RUN_DIR")
         cfg = config_from_args(args)  # validated before the run directory is touched
         out = cfg.output
     try:
@@ -163,15 +168,15 @@ def mesh(args) -> int:
 
 
 def demo(args) -> int:
-    """`jaxmap demo`: synthesize the city (once), map it with configs/city.yaml, mesh, evaluate, say where
-    it went."""
-    from jaxmap.n3.run import city_config_path, map_sequence
+    """`jaxmap demo`: synthesize the city (once), map it with the shipped config `city`, mesh, evaluate,
+    say where it went."""
+    from jaxmap.n3.run import map_sequence
     from jaxmap.synth.city import generate_city
 
     if not os.path.isfile(os.path.join(args.data, "poses.txt")):
         log.info("synthesizing the demo city into %s", args.data)
         generate_city(args.data, seed=0)
-    cfg = load_config(city_config_path(), [f"data.path={args.data}", f"output={args.out}"])
+    cfg = load_config("city", [f"data.path={args.data}", f"output={args.out}"])
     with claim(args.out, "map", overwrite=True):  # `make demo` again replaces the last demo run
         summary = map_sequence(cfg, args.out)
     m = summary.get("metrics", {})
@@ -220,7 +225,7 @@ def slam(args) -> int:
 
 def localize(args) -> int:
     """`jaxmap localize MAP --data SEQ [--init POSE] [--out RUN]`: localise a sequence in a saved N3 map."""
-    from jaxmap.slam.localize import localize_sequence, read_init, summary_table
+    from jaxmap.slam.localize import frame_ranges, localize_sequence, read_init, summary_table
     from jaxmap.slam.track import TrackOptions
 
     init = read_init(args.init) if args.init else None
@@ -236,6 +241,10 @@ def localize(args) -> int:
     if "position_error_cm" in m:
         brief["position_error_median_cm"] = m["position_error_cm"]["median"]
         brief["position_error_max_cm"] = m["position_error_cm"]["max"]
+    if m["lost_frames"]:
+        brief["lost_frames"] = frame_ranges(m["lost_frames"])
+        if "localised_position_error_cm" in m:
+            brief["localised_position_error_median_cm"] = m["localised_position_error_cm"]["median"]
     print(json.dumps(brief))
     return 0
 
@@ -250,11 +259,7 @@ def prior(args) -> int:
     from jaxmap.imt.prior import DEFAULT_CONFIG, WEIGHTS_FILE, load_prior, shipped_weights_path
     from jaxmap.imt.training import make_val_set, summary_of, train
 
-    # the CLI default and absent (an installed package run outside the repository): the built-in defaults,
-    # which equal configs/prior.yaml
     path = args.config or DEFAULT_CONFIG
-    if path == DEFAULT_CONFIG and not os.path.isfile(path):
-        path = None
     overrides = list(args.overrides) + ([f"output={args.out}"] if args.out and args.action == "train" else [])
     cfg = load_config(path, overrides, schema=PriorConfig)
     if args.action == "train":
@@ -266,6 +271,38 @@ def prior(args) -> int:
     out = {"weights": weights or shipped_weights_path(), **summary_of(model, cfg, make_val_set(cfg), {}),
            "trained": {k: meta[k] for k in ("steps", "train_time_s", "total_time_s") if k in meta}}
     print(json.dumps(out))
+    return 0
+
+
+def configs(args) -> int:
+    """`jaxmap configs [NAME]`: the shipped configs' names with the first line of each, or one of them
+    printed (YAML, to copy and edit)."""
+    from jaxmap.config import resolve_config, shipped_config_dir, shipped_config_path
+
+    if args.name:
+        with open(resolve_config(shipped_config_path(args.name) or args.name)) as f:
+            print(f.read(), end="")
+        return 0
+    import dataclasses
+
+    import yaml
+
+    from jaxmap.config import ImtConfig, MapConfig, PriorConfig, SlamConfig
+
+    names = shipped_configs()
+    width = max(len(n) for n in names)
+    for name in names:
+        with open(shipped_config_path(name)) as f:
+            text = f.read()
+        first = text.split("\n", 1)[0].lstrip("# ").strip()
+        keys = set(yaml.safe_load(text) or {})
+        # the command is the first whose schema holds every top-level key (a slam config is an imt one and more)
+        command = next((c for c, s in (("map", MapConfig), ("imt", ImtConfig), ("slam", SlamConfig),
+                                       ("prior", PriorConfig)) if keys <= {f.name for f in dataclasses.fields(s)}), "?")
+        first = first.removeprefix(f"jaxmap {command}").lstrip(": ")  # (the command is in its own column)
+        print(f"{name:<{width}}  jaxmap {command:<6} {first if len(first) <= 80 else first[:77] + '...'}")
+    print(f"\n(in {shipped_config_dir()}; every command takes a name in place of a YAML path, e.g. "
+          "`jaxmap map city --data DIR`; `jaxmap configs NAME > my.yaml` to start your own)")
     return 0
 
 

@@ -84,11 +84,12 @@ def has_ground_truth(data_path: str) -> bool:
     return os.path.isfile(os.path.join(data_path, "gt_points.ply"))
 
 
-def evaluate_run_mesh(mesh_path: str, cfg, floor: bool = True) -> dict:
+def evaluate_run_mesh(mesh_path: str, cfg, floor: bool = True, protocol: str = "shine", ghost: bool = True) -> dict:
     """The standard protocol's metrics of a mesh against the ground truth of the run's data, culled to
-    exactly the frames and range the run mapped (`jaxmap.metrics.evaluate_mesh_file`)."""
+    exactly the frames and range the run mapped (`jaxmap.metrics.evaluate_mesh_file`). The one scoring of
+    a run's mesh: its metrics.json, and `jaxmap eval RUN` (`jaxmap.eval_run`) after it."""
     d, p, e = cfg.data, cfg.preprocess, cfg.eval
     return evaluate_mesh_file(mesh_path, d.path, threshold_m=e.threshold_m, cull_distance_m=e.cull_distance_m,
                               eval_radius_m=e.eval_radius_m, n_samples=e.n_samples, begin_frame=d.begin_frame,
                               end_frame=d.end_frame, every_frame=d.every_frame, min_range_m=p.min_range_m,
-                              max_range_m=p.max_range_m, floor=floor)
+                              max_range_m=p.max_range_m, floor=floor, protocol=protocol, ghost=ghost)

@@ -109,3 +109,36 @@ def test_every_config_file_is_checked_above():
 
     names = {os.path.basename(p)[:-5] for p in glob.glob("configs/*.yaml")}
     assert names == {"city", "ncd", "rgbd", "room_imt", "room_slam", "city_slam", "prior"}
+
+
+def test_configs_ship_in_the_package_and_load_by_name_from_any_folder(tmp_path, monkeypatch, capsys):
+    """Issue 43: the configs are package data (jaxmap/configs; the repository's configs/ links there), every
+    command takes them by name from any folder, a path still works and wins over a name, and a config that
+    is neither is one line naming what was given and the shipped names, whichever command it was given to."""
+    import os
+
+    from jaxmap.cli import main
+    from jaxmap.config import ImtConfig, shipped_config_dir, shipped_configs
+
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    assert os.path.samefile(shipped_config_dir(), os.path.join(repo, "configs"))
+    assert shipped_configs() == ["city", "city_slam", "ncd", "prior", "rgbd", "room_imt", "room_slam"]
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "city").mkdir()  # a data folder named like a config is not a config file
+    assert load_config("city") == load_config("city.yaml") == load_config(os.path.join(repo, "configs", "city.yaml"))
+    assert load_config("room_imt", schema=ImtConfig).map.voxel_size_m == 0.1
+    (tmp_path / "city.yaml").write_text("train:\n  iters: 7\n")  # a file of that name: the file
+    assert load_config("city.yaml").train.iters == 7 and load_config("city").train.iters != 7
+    with pytest.raises(ConfigError, match=r"^config not found: cty is neither a file nor a shipped config; "
+                                          r"did you mean 'city'\? .*: city, city_slam, ncd, prior, rgbd"):
+        load_config("cty")
+    capsys.readouterr()
+    for argv in (["map", "nope", "--data", "d"], ["imt", "nope", "--data", "d"], ["slam", "nope"],
+                 ["prior", "eval", "nope"], ["map", "--data", "d"]):
+        assert main(argv) == 2, argv
+        err = capsys.readouterr().err
+        assert len(err.splitlines()) == 1 and "city, city_slam, ncd, prior, rgbd, room_imt, room_slam" in err, err
+    assert main(["configs"]) == 0
+    listed = capsys.readouterr().out
+    assert "city       jaxmap map    N3 mapping" in listed and "room_imt   jaxmap imt" in listed, listed
+    assert main(["configs", "room_slam"]) == 0 and "frontend:" in capsys.readouterr().out

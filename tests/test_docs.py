@@ -78,3 +78,18 @@ def test_slug():
     assert _slug("Quality: the validation suite") == "quality-the-validation-suite"
     assert _slug("SLAM: `jaxmap bench slam`") == "slam-jaxmap-bench-slam"
     assert _slug("Running, stopping, resuming") == "running-stopping-resuming"
+
+
+def test_the_help_says_what_synth_frames_and_eval_do():
+    """Issue 43: `synth --frames` spreads the loop (it does not shorten the drive) and says how to map part
+    of a drive; `eval` scores a run's mesh on the frames the run mapped."""
+    from jaxmap.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if a.dest == "command").choices
+    frames = next(a for a in sub["synth"]._actions if a.dest == "frames").help
+    assert "whole closed loop" in frames and "not shorter" in frames and "data.end_frame=N" in frames
+    assert "frames the run mapped" in next(a for a in sub["eval"]._actions if a.dest == "frames").help
+    readme = _read(README)
+    for claim in ("runs/city/mesh_0.2.ply", "--no-mesh", "`synth --frames N` keeps the preset's whole loop",
+                  "when it has timestamps", "jaxmap configs"):
+        assert claim in readme, claim

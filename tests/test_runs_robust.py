@@ -4,6 +4,7 @@ one-line error (exit code 2) naming the path at fault for every user mistake, ne
 import json
 import os
 import pathlib
+import re
 import shutil
 import signal
 import subprocess
@@ -382,10 +383,13 @@ def test_out_that_is_a_file_or_under_a_file_or_read_only(city, tmp_path, capsys,
 
 
 def test_eval_checks_json_out_first_and_writes_no_side_file(ref, city, tmp_path, capsys, read_only, monkeypatch):
+    import jaxmap.finish
     import jaxmap.metrics
 
     calls = []
-    monkeypatch.setattr(jaxmap.metrics, "evaluate_mesh_file", lambda *a, **k: calls.append(a) or {"f_score": 1.0})
+    fake = lambda *a, **k: calls.append(a) or {"f_score": 1.0}  # noqa: E731
+    monkeypatch.setattr(jaxmap.metrics, "evaluate_mesh_file", fake)
+    monkeypatch.setattr(jaxmap.finish, "evaluate_mesh_file", fake)  # (a run's mesh: scored as the run scored it)
     monkeypatch.setattr(jaxmap.metrics, "format_metrics", lambda *a, **k: "(table)", raising=False)
     assert main(["eval", str(ref / "mesh.ply"), "--gt", str(city), "--json-out", str(read_only / "m.json")]) == 2
     _one_line_error(capsys, f"--json-out {read_only / 'm.json'}")
@@ -467,3 +471,57 @@ def test_open_sequence_is_indexable(small_city):
         seq[len(seq)]
     with pytest.raises(TypeError):
         seq[0:2]
+
+
+# ------------------------------------------------------------------------------------------------
+# the README's Quickstart and Python snippet outside the repository (issue 43). Here, beside `ref`, because
+# a run of TINY on the small city's first frames is the program `ref` compiled: the CLI below loads it
+# from the compile cache and the snippet finds it in this process (a test of its own compiled it again).
+# ------------------------------------------------------------------------------------------------
+
+
+def _readme_python(readme: str, tiny: list[str]) -> str:
+    """The README's first Python block, small: TINY's settings, 3 frames, the run's mesh resolution."""
+    code = re.search(r"^Python:\n\n```python\n(.*?)^```", readme, re.S | re.M).group(1)
+    small = {'load_config("city")': f'load_config("city", {tiny!r})',
+             'open_sequence("data/city")': 'open_sequence("data/city", end_frame=3)',
+             "mapper.mesh(res=0.1)": "mapper.mesh(res=0.2)"}
+    for line, repl in small.items():
+        assert line in code, f"the README's Python snippet has no {line}"
+        code = code.replace(line, repl)
+    return code
+
+
+def test_quickstart_and_python_snippet_run_outside_the_repository(ref, small_city, tmp_path, monkeypatch, capsys):
+    """From a folder outside the repository: the Quickstart's `jaxmap map city` (configs by name) on what its
+    first line writes (`jaxmap synth city --small --out data/city` is the session's small_city), `jaxmap eval`
+    of that partial run equal to its metrics.json to the digit with a warning that it mapped 3 of 64 frames,
+    and the README's Python snippet."""
+    import jaxmap
+
+    repo = pathlib.Path(__file__).resolve().parents[1]
+    readme = (repo / "README.md").read_text(encoding="utf-8")
+    for line in ("jaxmap synth city --out data/city", "jaxmap synth city --small --out data/city_small",
+                 "jaxmap map city --data data/city --out runs/city", "jaxmap eval runs/city "):
+        assert line in readme, f"README.md has no `{line}`"
+    assert os.path.relpath(tmp_path, repo).startswith(".."), tmp_path
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "city").symlink_to(small_city)
+    tiny = [s for s in TINY[2::2] if not s.startswith("data.end_frame")] + ["data.end_frame=3"]
+    env = dict(os.environ, PYTHONPATH=str(pathlib.Path(jaxmap.__file__).parents[1]))  # this jaxmap, as installed
+    r = subprocess.run([sys.executable, "-m", "jaxmap", "map", "city", "--data", "data/city", "--out", "runs/city",
+                        "--no-progress"] + [a for s in tiny for a in ("--set", s)],
+                       cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+
+    monkeypatch.chdir(tmp_path)
+    capsys.readouterr()
+    assert main(["eval", "runs/city"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out.splitlines()[-1]) == json.loads((tmp_path / "runs/city/metrics.json").read_text())
+    assert "mapped frames 0-2 of the 64 in data/city" in err, err
+
+    scope = {"points_w": np.array([[0.0, 0.0, 0.5], [5.0, 2.0, 1.0]])}  # the snippet's query points
+    exec(compile(_readme_python(readme, tiny), "README.md (Python)", "exec"), scope)
+    assert scope["sdf"].shape == (2,) and (tmp_path / "mesh.ply").stat().st_size > 0
+    assert (tmp_path / "runs/x/checkpoint").is_dir()

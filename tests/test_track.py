@@ -200,3 +200,23 @@ def test_read_init_takes_a_kitti_line_a_matrix_or_a_file(tmp_path):
     bad[0, 0] = 2.0
     with pytest.raises(DataError):
         read_init(" ".join(repr(float(v)) for v in bad[:3].ravel()))
+
+
+def test_localize_summary_names_the_lost_frames_and_the_error_of_the_localised_ones():
+    """Issue 43: lost frames keep their prediction, so the error over all frames mixes in how far the
+    prediction drifted; the summary prints the lost frames as ranges and the localised frames' error beside."""
+    from jaxmap.slam.localize import frame_ranges, pose_errors, summary_table
+
+    assert frame_ranges([12, 10, 11, 15, 17, 18]) == "10-12, 15, 17-18" and frame_ranges([]) == ""
+    est, gt = np.tile(np.eye(4), (20, 1, 1)), np.tile(np.eye(4), (20, 1, 1))
+    est[:10, 0, 3] = 0.013                    # localised: 1.3 cm off
+    est[10:, 0, 3] = np.linspace(1, 10, 10)   # lost past the map: the prediction runs away
+    ok = np.arange(20) < 10
+    m = {"frames": 20, "localised": 10, "localised_fraction": 0.5, "lost_frames": list(range(10, 20)),
+         "first_frame_s": 1.0, "median_frame_s": 0.1, **pose_errors(est, gt, ok)}
+    lines = summary_table(m).splitlines()
+    assert lines[1] == "lost frames        10-19", lines
+    assert lines[2].startswith("position error     all frames: median 50.6 cm, p95 905.0 cm"), lines
+    assert lines[3] == "                   localised:  median 1.3 cm, p95 1.3 cm, max 1.3 cm", lines
+    whole = summary_table({**m, "lost_frames": [], "localised": 20, "localised_fraction": 1.0})
+    assert "lost" not in whole and "localised: " not in whole and "position error     median" in whole

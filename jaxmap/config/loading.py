@@ -1,6 +1,7 @@
 """Loading configs: YAML in, frozen dataclasses out, unknown keys rejected, `--set` overrides, validation.
 
-Every command of `jaxmap` reads one YAML file into a tree of frozen dataclasses (`jaxmap.config.schema`).
+Every command of `jaxmap` reads one YAML file into a tree of frozen dataclasses (`jaxmap.config.schema`):
+a path, or the name of a config shipped inside the package (`city` is jaxmap/configs/city.yaml).
 A key the dataclass does not declare is an error that names the file, the key and the closest valid key;
 `--set section.key=value` overrides any leaf; the resolved tree is written next to each run.
 
@@ -13,6 +14,7 @@ import dataclasses
 import difflib
 import os
 import typing
+from importlib import resources
 from typing import Any, Sequence
 
 import yaml
@@ -159,14 +161,14 @@ def _override(cfg: Any, overrides: Sequence[str], source: str) -> tuple[Any, dic
 
 
 def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = (), schema: type = MapConfig) -> Any:
-    """Load a YAML config file into `schema`, then apply overrides. `path=None` gives defaults."""
+    """Load a YAML config into `schema`, then apply overrides. `path`: a YAML file, or the name of a
+    shipped config (`city`, `room_imt`, ...: `shipped_configs()`) when no such file exists; None gives
+    the defaults."""
     if path is None:
         cfg, origins = _override(schema(), overrides, "--set")
         validate(cfg, "<defaults>", origins)
         return cfg
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise ConfigError(f"config file not found: {path} (the shipped ones are in configs/)")
+    path = resolve_config(path)
     with open(path) as f:
         try:
             data = yaml.safe_load(f)
@@ -177,11 +179,38 @@ def load_config(path: str | os.PathLike | None, overrides: Sequence[str] = (), s
     return cfg
 
 
+def shipped_config_dir() -> str:
+    """The folder of the configs shipped inside the package (jaxmap/configs, package data; the repository's
+    configs/ links to it)."""
+    return os.fspath(resources.files("jaxmap").joinpath("configs"))
+
+
+def shipped_configs() -> list[str]:
+    """The names of the shipped configs (`city`, `room_imt`, ...), sorted: what `load_config` and every
+    command accept in place of a path."""
+    return sorted(n[:-5] for n in os.listdir(shipped_config_dir()) if n.endswith(".yaml"))
+
+
+def resolve_config(given: str | os.PathLike) -> str:
+    """The YAML file a config argument names: an existing file as given (a path wins over a name), else
+    the shipped config of that name (`city` or `city.yaml`). Neither: a ConfigError naming what was
+    given and the shipped names."""
+    given = os.fspath(given)
+    if os.path.isfile(given):
+        return given
+    name, names = given[:-5] if given.endswith(".yaml") else given, shipped_configs()
+    if name and os.sep not in name and name in names:
+        return os.path.join(shipped_config_dir(), f"{name}.yaml")
+    close = difflib.get_close_matches(os.path.basename(name), names, n=1, cutoff=0.6)
+    hint = f"did you mean '{close[0]}'? " if close else ""
+    raise ConfigError(f"config not found: {given} is neither a file nor a shipped config; {hint}give a YAML path "
+                      f"or one of: {', '.join(names)} (`jaxmap configs` lists them)")
+
+
 def shipped_config_path(name: str) -> str | None:
-    """`configs/<name>` of the source checkout (what `make demo` and `jaxmap bench` use), wherever the
-    command runs from; None for an installed package without it (the dataclass defaults then)."""
-    path = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "configs", name)
-    return os.path.normpath(path) if os.path.isfile(path) else None
+    """The file of the shipped config `name` (`city.yaml` or `city`), or None when there is none."""
+    name = name[:-5] if name.endswith(".yaml") else name
+    return os.path.join(shipped_config_dir(), f"{name}.yaml") if name in shipped_configs() else None
 
 
 def config_from_args(args, schema: type = MapConfig) -> Any:

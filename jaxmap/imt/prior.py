@@ -28,7 +28,7 @@ from jaxmap.imt.encoder import encode as _encode
 from jaxmap.imt.encoder import encode_with_jacobian as _encode_with_jacobian
 
 WEIGHTS_FILE = "prior.npz"
-DEFAULT_CONFIG = "configs/prior.yaml"
+DEFAULT_CONFIG = "prior"  # the shipped config (jaxmap/configs/prior.yaml), by name
 
 
 # ---------------------------------------------------------------------------------------------
@@ -123,7 +123,7 @@ def load_prior(path: str | os.PathLike | None = None, with_meta: bool = False):
     """
     path = shipped_weights_path() if path is None else os.fspath(path)
     if not os.path.isfile(path):
-        raise JaxmapError(f"prior weights not found: {path}; train them with `jaxmap prior train configs/prior.yaml`")
+        raise JaxmapError(f"prior weights not found: {path}; train them with `jaxmap prior train prior`")
     with np.load(path) as z:
         cfg = from_dict(PriorModelConfig, json.loads(str(z["__model_config__"])), source=path)
         meta = json.loads(str(z["__meta__"])) if "__meta__" in z else {}

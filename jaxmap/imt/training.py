@@ -1,6 +1,6 @@
 """Training and evaluation of the equivariant prior (`jaxmap prior`, `jaxmap.commands.prior`).
 
-`jaxmap prior train configs/prior.yaml [--out RUN] [--set k=v ...]` trains the encoder and decoder
+`jaxmap prior train [prior] [--out RUN] [--set k=v ...]` trains the encoder and decoder
 (CNP-style: the encoder sees a voxel's surface points and normals, the decoder predicts the SDF at
 query points) on `jaxmap.synth.shapes` patches and writes to the run directory:
 `config.yaml` (resolved), `prior.npz` (weights + model config + figures), `metrics.json`,

@@ -196,13 +196,31 @@ def write_outputs(out_dir: str, seq, step: LocalizeStep, has_gt: bool, wall_s: f
     return m
 
 
+def frame_ranges(frames: list[int]) -> str:
+    """Frame numbers as ranges: [10, 11, 12, 15] -> "10-12, 15"."""
+    runs: list[list[int]] = []
+    for f in sorted(frames):
+        if runs and f == runs[-1][1] + 1:
+            runs[-1][1] = f
+        else:
+            runs.append([f, f])
+    return ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in runs)
+
+
 def summary_table(m: dict) -> str:
-    """The lines `jaxmap localize` prints after its JSON line: localised fraction and errors."""
+    """The lines `jaxmap localize` prints before its JSON line: the frames localised and those lost (as
+    ranges), the errors over all frames and, when some were lost, over the localised ones beside them (a
+    lost frame keeps its prediction, whose error says little about the localisation)."""
     rows = [f"frames localised   {m['localised']} / {m['frames']} ({100 * m['localised_fraction']:.1f} %)"]
-    if "position_error_cm" in m:
-        p, r = m["position_error_cm"], m["rotation_error_deg"]
-        rows.append(f"position error     median {p['median']:.1f} cm, p95 {p['p95']:.1f} cm, max {p['max']:.1f} cm")
-        rows.append(f"rotation error     median {r['median']:.2f} deg, max {r['max']:.2f} deg")
+    if m.get("lost_frames"):
+        rows.append(f"lost frames        {frame_ranges(m['lost_frames'])}")
+    lost = bool(m.get("lost_frames")) and "localised_position_error_cm" in m
+    for tag, key, fmt in (("position", "position_error_cm", "median {median:.1f} cm, p95 {p95:.1f} cm, max {max:.1f} cm"),
+                          ("rotation", "rotation_error_deg", "median {median:.2f} deg, max {max:.2f} deg")):
+        if key in m:
+            rows.append(f"{tag + ' error':<19}" + ("all frames: " if lost else "") + fmt.format(**m[key]))
+            if lost:
+                rows.append(" " * 19 + "localised:  " + fmt.format(**m[f"localised_{key}"]))
     rows.append(f"time per frame     first {m['first_frame_s']:.2f} s (compiling), then median "
                 f"{1000 * m['median_frame_s']:.0f} ms")
     return "\n".join(rows)
