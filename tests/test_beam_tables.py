@@ -151,3 +151,25 @@ def test_synth_city_scans_with_a_named_sensor(tmp_path):
     np.testing.assert_allclose(np.degrees(lay.beams), elevations_deg("vlp32"), atol=1e-3)
     with pytest.raises(SystemExit, match="unknown beam pattern"):
         main(["synth", "city", "--small", "--beams", "vlp16", "--out", str(tmp_path / "x")])
+
+
+def test_a_beam_table_set_in_the_config_is_the_layout():
+    """`preprocess.image_beams_deg`: a run whose first scan does not show every beam (here the 8 lowest
+    beams return nothing: a sensor mounted low behind the vehicle's hood) takes the table from the config
+    (the columns still read off the scan), keeps it when resolved, and a table of one beam is refused with
+    a message naming the key. Read off that scan alone, the layout has 24 rows, not the sensor's 32."""
+    from jaxmap.config import ConfigError, load_config
+    from jaxmap.preprocess import layout_of, with_layout
+
+    pts, beam, _ = _scan("vlp32")
+    table = tuple(elevations_deg("vlp32"))
+    cfg = load_config("city", [f"preprocess.image_beams_deg=[{','.join(map(str, table))}]"]).preprocess
+    partial = pts[beam >= 8]
+    assert ri.estimate_layout(partial).rows == 24
+    lay = layout_of(with_layout(cfg, partial))
+    np.testing.assert_allclose(np.degrees(lay.beams), table, atol=1e-5)
+    assert lay.cols == ri.estimate_layout(partial).cols == 1800
+    row, _, _, inside = ri.pixels(pts, lay)
+    assert inside.all() and np.array_equal(row, beam)
+    with pytest.raises(ConfigError, match="image_beams_deg"):
+        load_config("city", ["preprocess.image_beams_deg=[1.0]"])
