@@ -4,11 +4,13 @@ DUFOMap's idea on the N3 map's voxels. Every frame tests the allocated leaf voxe
 `evidence.max_range_m` of the sensor (the window's and those that left it) against the scan's range
 image (`jaxmap.range_image`, built from the whole raw scan, not the training crop):
 
-  seen free  every return whose ray passes through the voxel (its footprint: the pixels within
-             asin(r_v / d) of the centre's direction, d its distance, r_v the half-diagonal, plus half a
-             column; in elevation the sensor's beams that bracket it, `range_image.footprint_nearest`) lies beyond the voxel's far side by `margin` (pose and range error): the sensor looked
-             through the whole voxel. A footprint without any return (sky, dropouts, beyond the sensor's
-             range) says nothing; one reaching beyond the field of view is never free.
+  seen free  every return whose ray passes through the voxel lies beyond the voxel's far side by
+             `margin` (pose and range error): the sensor looked through the whole voxel. Its footprint
+             (`range_image.footprint_nearest`): in azimuth the columns within asin(r_v / d) of the
+             centre's direction plus half a column (d its distance, r_v the half-diagonal), in elevation
+             the sensor's own beams that bracket that angle. A footprint without any return (the sky,
+             nothing within range) says nothing; a dropout under a return blocks
+             (`range_image.dropouts_block`); one reaching beyond the field of view is never free.
   hit        a scan point of this frame lies in the voxel.
 
 `free_run` counts the frames that saw the voxel free since its last hit (a hit resets it), and a voxel
