@@ -215,7 +215,8 @@ def _bench_args(sub) -> None:
     p.add_argument("--long", action="store_true",
                    help="n3: the 1.1 km drive of `jaxmap synth city --long` (per-frame cost and memory over time)")
     p.add_argument("--suite", dest="validation_suite", action="store_true",
-                   help="n3: the validation suite (4 cities: seeds, layouts, noise, beams) on which defaults are "
+                   help="n3: the validation suite (7 cities: seeds, layouts, noise, real sensors' beam tables, traffic, "
+                        "artifacts) on which defaults are "
                         "chosen; rows, mean and worst; --only picks variants (default jaxmap)")
     p.add_argument("--cities", default=None,
                    help="n3 --suite: comma-separated subset of the suite's cities (the variant's other rows in "
