@@ -304,13 +304,14 @@ def with_layout(cfg, points_s: np.ndarray):
                                image_beams_deg=tuple(round(math.degrees(b), 6) for b in lay.beams))
 
 
-def drop_veil(points_s: np.ndarray, cfg) -> np.ndarray:
+def drop_veil(points_s: np.ndarray, cfg, image: np.ndarray | None = None) -> np.ndarray:
     """The raw scan [N, 3] (sensor frame) without its mixed pixels and isolated returns
     (`range_image.veil_keep` with tolerance `veil_m`; 0 = all kept). Runs before the crop: a return's
-    neighbours in the range image must all be there."""
+    neighbours in the range image must all be there. image: the scan's range image in cfg's layout, when
+    the caller has built it."""
     if cfg.veil_m <= 0 or len(points_s) == 0:
         return points_s
-    return points_s[range_image.veil_keep(points_s, layout_of(cfg, points_s), cfg.veil_m)]
+    return points_s[range_image.veil_keep(points_s, layout_of(cfg, points_s), cfg.veil_m, image=image)]
 
 
 def preprocess_scan(points_s: np.ndarray, cfg) -> tuple[np.ndarray, np.ndarray]:

@@ -280,7 +280,7 @@ def _across_gap(image, raw, layout: Layout, dr: int, dc: int, xp):
     return xp.where(gap, pred, xp.inf)
 
 
-def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
+def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np, image=None):
     """[N] bool: the returns to keep once mixed pixels and isolated returns are dropped (the veil, or
     shadow-point, test of LiDAR pipelines, on the organised scan).
 
@@ -296,7 +296,8 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
     points_s [N, 3] sensor frame (the whole raw scan: neighbours must not be cropped away); valid [N]
     bool or None; tol_m: a multiple of the range noise (0.15 m for 2 cm noise). The predictions are made
     per pixel from the image of each pixel's nearest return, and every return is tested against its
-    pixel's (pixels holding several returns test each).
+    pixel's (pixels holding several returns test each). image: that image of the `valid` returns
+    [rows, cols], when the caller has built it (the free-space evidence reads the same one), else built here.
     """
     row, col, rng, inside = pixels(points_s, layout, xp)
     flat = row * layout.cols + col
@@ -319,7 +320,7 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np):
 
     # twice: a mixed pixel that a neighbouring mixed pixel happened to continue loses that support once
     # the neighbour is gone
-    raw = image_of(valid)
+    raw = image_of(valid) if image is None else image
     keep = valid & supported(raw, raw)
     return keep & supported(image_of(keep), raw)
 

@@ -50,10 +50,12 @@ def preprocess(points_s, pose, cfg_preprocess, frame: int, image: bool = False):
     from the image: there they still block the free-space test (they say something may be there; gone,
     the rays beside a depth edge would free the voxels of the edge whose returns they replaced)."""
     points_s, pose = check_frame(points_s, pose, frame)
-    raw = drop_veil(points_s, cfg_preprocess)
+    # one range image a scan: the veil's neighbours and the evidence's footprints read the same one
+    layout = layout_of(cfg_preprocess)
+    img = min_range_image(points_s, layout) if (image or cfg_preprocess.veil_m > 0) and layout is not None else None
+    raw = drop_veil(points_s, cfg_preprocess, img)
     pts, nrm = preprocess_points(raw, cfg_preprocess)
-    img = min_range_image(points_s, layout_of(cfg_preprocess)) if image else None
-    return pts, nrm, pose, img
+    return pts, nrm, pose, img if image else None
 
 
 def needs_layout(cfg) -> bool:

@@ -45,13 +45,15 @@ def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, 
     Returns (ScanBatch [rows], points kept [] int32, overflow [] bool: more kept points than rows)."""
     cfg = static.preprocess
     raw_valid = raw.valid
+    if cfg.veil_m > 0 and static.image is None:  # the host reads it off the scan; a traced program cannot
+        raise ValueError("preprocess.veil_m on the device needs the scans' range-image layout: resolve it "
+                         "first (jaxmap.n3.scan.resolve_layout), or set preprocess.veil_m: 0")
+    # one range image a scan, of every return: the veil reads it, and the veil's returns still block the
+    # free-space test (`scan.preprocess`)
+    image = min_range_image_jax(raw.points, raw.valid, static.image) if (static.evidence or cfg.veil_m > 0) else None
     if cfg.veil_m > 0:
-        if static.image is None:  # the host reads it off the scan; a traced program cannot
-            raise ValueError("preprocess.veil_m on the device needs the scans' range-image layout: resolve it "
-                             "first (jaxmap.n3.scan.resolve_layout), or set preprocess.veil_m: 0")
-        raw_valid = raw_valid & veil_keep(raw.points, static.image, cfg.veil_m, valid=raw_valid, xp=jnp)
-    # every return, the veil's too: they block the free-space test (`scan.preprocess`)
-    image = min_range_image_jax(raw.points, raw.valid, static.image) if static.evidence else None
+        raw_valid = raw_valid & veil_keep(raw.points, static.image, cfg.veil_m, valid=raw_valid, xp=jnp, image=image)
+    image = image if static.evidence else None
     pts_s, nrm_s, valid, kept = preprocess_scan(raw.points, raw_valid, cfg, rows)
     T_m_s = SE3.from_rotation_and_translation(raw.rotation, raw.translation)  # (full float32 on a GPU: `geometry`)
     pts, nrm = T_m_s.apply(pts_s), T_m_s.rotation().apply(nrm_s)
