@@ -95,7 +95,7 @@ def host_preprocess_checks(c: Any, x: str):
 def _slam_checks(c: SlamConfig, x: str):
     if c.map_kind == "n3" and not c.n3_config:
         yield (f"{x}map_kind", f"{x}n3_config"), (
-            f"{x}map_kind=n3 maps into an N3 map: set {x}n3_config to its config (e.g. configs/city.yaml)")
+            f"{x}map_kind=n3 maps into an N3 map: set {x}n3_config to its config (a YAML path or a shipped name, e.g. city)")
     if c.map_kind == "n3" and c.external_poses:
         yield (f"{x}map_kind", f"{x}external_poses"), (
             f"{x}external_poses drives the imt map only: use {x}map_kind=imt with it")

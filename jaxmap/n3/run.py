@@ -170,7 +170,7 @@ class MapSteps:
 
 
 def city_config_path() -> str | None:
-    """configs/city.yaml of the source checkout, or None (see `config.shipped_config_path`)."""
+    """The shipped config `city` (jaxmap/configs/city.yaml, package data; `config.shipped_config_path`)."""
     return shipped_config_path("city.yaml")
 
 
