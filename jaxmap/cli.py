@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 
 
@@ -32,6 +33,17 @@ def _add_view_args(p: argparse.ArgumentParser) -> None:
                    help="re-extract the viewer's mesh every N frames, in a background thread (0 = never)")
 
 
+def _positive_km(text: str) -> float:
+    """--length-km's type: a positive, finite number of km (argparse reports anything else)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number of km: {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a positive number of km, not {text}")
+    return value
+
+
 def _synth_args(sub) -> None:
     p = sub.add_parser("synth", help="write a synthetic sequence with exact ground truth")
     p.add_argument("scene", choices=["city", "room"])
@@ -47,6 +59,11 @@ def _synth_args(sub) -> None:
     p.add_argument("--pedestrians", action="store_true", help="city: add moving pedestrians (not in the GT)")
     p.add_argument("--long", action="store_true",
                    help="city: a 1.1 km serpentine drive through a 256 m x 200 m city, 1025 frames")
+    p.add_argument("--length-km", type=_positive_km, default=None, metavar="X",
+                   help="city --long: a drive of about X km through the same city instead: the serpentine, then "
+                        "loops around groups of blocks back over streets already driven, passing its intersections "
+                        "again (like KITTI's sequence 00); frames 1.09 m apart (3.7 km: 3400 frames, ~3.4 GB of "
+                        "scans); meta.json records the route's length and revisits")
     p.add_argument("--layout", choices=["grid", "suburb"], default="grid",
                    help="city: the street grid (default) or a curved ring boulevard with detached houses")
     p.add_argument("--beams", default=None, metavar="N|hdl64|vlp32",
@@ -214,6 +231,10 @@ def _bench_args(sub) -> None:
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
     p.add_argument("--long", action="store_true",
                    help="n3: the 1.1 km drive of `jaxmap synth city --long` (per-frame cost and memory over time)")
+    p.add_argument("--length-km", type=_positive_km, default=None, metavar="X",
+                   help="n3 --long: an X km drive with loops over streets already driven (`jaxmap synth city --long "
+                        "--length-km X`, made in data/city_long_<X>km if missing and no --data); tables every 500 "
+                        "and 100 frames of time, RSS, device memory and submaps")
     p.add_argument("--suite", dest="validation_suite", action="store_true",
                    help="n3: the validation suite (7 cities: seeds, layouts, noise, real sensors' beam tables, traffic, "
                         "artifacts) on which defaults are "
@@ -223,7 +244,17 @@ def _bench_args(sub) -> None:
                         "OUT/suite.json are kept)")
     p.add_argument("--quick", action="store_true",
                    help="gpu: the small city and room, a few frames each (checks that the whole bench runs)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a config key of the benchmark's runs, e.g. --set train.iters=20 (repeatable)")
+
+
+def _check_combinations(parser: argparse.ArgumentParser, args) -> None:
+    """Option combinations argparse does not check by itself, reported as argparse reports errors (the
+    command's usage and one line, exit status 2)."""
+    if getattr(args, "length_km", None) is not None and not args.long:
+        what = "jaxmap synth city --long" if args.command == "synth" else "jaxmap bench n3 --long"
+        parser.subcommand_parsers[args.command].error(f"--length-km is the length of the long drive: use it with "
+                                                      f"--long ({what} --length-km X)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -234,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     for add in (_synth_args, _eval_args, _baseline_args, _map_args, _mesh_args, _demo_args, _prior_args, _imt_args, _slam_args, _localize_args, _configs_args, _info_args, _view_args, _bench_args):
         add(sub)
+    parser.subcommand_parsers = sub.choices  # (for errors in the command's usage: _check_combinations)
     return parser
 
 
@@ -241,7 +273,9 @@ def main(argv: list[str] | None = None) -> int:
     from jaxmap import hostmem
 
     hostmem.limit_arenas()
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _check_combinations(parser, args)
     # Our messages at INFO; other libraries' (jax's backend probing, orbax) only from WARNING. Records
     # of the "jaxmap" logger pass its own level and then reach the root handler whatever the root level.
     logging.basicConfig(level=logging.WARNING, format="[%(name)s] %(message)s", stream=sys.stderr)

@@ -32,6 +32,8 @@ def synth(args) -> int:
         if args.small:
             raise SystemExit("jaxmap synth: --long and --small are different presets; pick one")
         kw["long"] = True
+        if getattr(args, "length_km", None) is not None:
+            kw["length_km"] = args.length_km
     if args.scene == "city":
         kw["layout"] = args.layout
         if args.beams is not None:

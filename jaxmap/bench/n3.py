@@ -16,6 +16,12 @@ Acc / Comp / C-L1 / Comp. ratio / F-score at 10 cm within the 20 m the mapper se
 `--long`: the 1.1 km drive of `jaxmap synth city --long` (1025 frames): per-frame medians over
 frames 100-200 and 900-1000, and the store's pairs and the feature rows every 100 frames (the
 store must stay flat once the window is full; features grow only with the explored area).
+`--long --length-km X`: an X km drive that loops back over streets already driven (`jaxmap synth city
+--long --length-km X`, made in data/city_long_<X>km). Both print, every 500 frames and every 100, the
+median and p95 frame time, the RSS at the range's end, the peak RSS so far, the device memory and the
+submaps resident / on disk where the records carry them (`long_table`), the last 500 frames' median
+frame time over frames 500-1000's (`late_ratio`; the target: within 10 %) and the mapping process's
+peak RSS (getrusage of the children). `--set KEY=VALUE` goes to the mapping run.
 
 Everything goes to OUT/bench.json (and OUT/long.json); each run directory is under OUT/.
 """
@@ -231,21 +237,102 @@ def print_table(results: dict) -> None:
           "whose pairs the voxel's block still holds")
 
 
+LONG_EVERY = (500, 100)  # the long drive's tables: frames per row
+LATE_TARGET = 1.10  # the last 500 frames' median frame time at most 10 % above frames 500-1000's
+
+
+def _last_of(records, key):
+    """The last value of `key` among the records that carry it, or None."""
+    return next((r[key] for r in reversed(records) if r.get(key) is not None), None)
+
+
+def long_table(records: list, every: int) -> list:
+    """Rows of the long drive's table, one per `every` frames of per-frame records (timing.json "frames"):
+    {"frames": [first, last] (indices into records), "median_s", "p95_s" (total_s), "rss_mb" (the range's
+    last record), "peak_rss_mb" (the largest peak_rss_mb (else rss_mb) of the records so far), "device_mb",
+    "submaps_resident", "submaps_on_disk" (the range's last record that carries them; None if none does)}."""
+    rows, peak = [], float("-inf")
+    for a in range(0, len(records), every):
+        part = records[a:a + every]
+        t = np.array([r["total_s"] for r in part], dtype=np.float64)
+        for r in part:
+            peak = max(peak, float(r.get("peak_rss_mb", r.get("rss_mb", float("nan")))))
+        rows.append({"frames": [a, a + len(part) - 1], "median_s": float(np.median(t)),
+                     "p95_s": float(np.percentile(t, 95)), "rss_mb": part[-1].get("rss_mb"), "peak_rss_mb": peak,
+                     "device_mb": _last_of(part, "device_mb"), "submaps_resident": _last_of(part, "submaps_resident"),
+                     "submaps_on_disk": _last_of(part, "submaps_on_disk")})
+    return rows
+
+
+def late_ratio(records: list, window: int = 500) -> dict | None:
+    """The last `window` frames' median total_s over frames window-2*window's (500-1000): {"late": [first,
+    last], "median_late_s", "median_500_1000_s", "ratio", "within_10pct" (ratio <= LATE_TARGET)}; None with
+    fewer than 2 * window frames."""
+    n = len(records)
+    if n < 2 * window:
+        return None
+    ref = float(np.median([r["total_s"] for r in records[window:2 * window]]))
+    late = float(np.median([r["total_s"] for r in records[n - window:]]))
+    ratio = late / ref
+    return {"late": [n - window, n - 1], "median_late_s": late, "median_500_1000_s": ref, "ratio": ratio,
+            "within_10pct": bool(ratio <= LATE_TARGET)}
+
+
+def print_long_table(rows: list, title: str) -> None:
+    """A long_table: n/a where no record carries the device memory, - where none carries the submaps."""
+    def num(v, fmt, none):
+        return none if v is None else format(v, fmt)
+
+    print(title)
+    _print_head(f"{'frames':>11}{'median s':>9}{'p95 s':>8}{'RSS MB':>8}{'peak MB':>8}{'device MB':>10}"
+                f"{'submaps res':>12}{'on disk':>8}")
+    for r in rows:
+        a, b = r["frames"]
+        print(f"{a:>5d}-{b:<5d}{r['median_s']:>9.3f}{r['p95_s']:>8.3f}{num(r['rss_mb'], '.0f', 'n/a'):>8}"
+              f"{r['peak_rss_mb']:>8.0f}{num(r['device_mb'], '.0f', 'n/a'):>10}"
+              f"{num(r['submaps_resident'], 'd', '-'):>12}{num(r['submaps_on_disk'], 'd', '-'):>8}")
+
+
+def long_data_dir(args) -> str:
+    """Where the long drive is: --data, else data/city_long (with --length-km X: data/city_long_<X>km)."""
+    if args.data != "data/city_bench":
+        return args.data
+    km = getattr(args, "length_km", None)
+    return "data/city_long" if km is None else f"data/city_long_{km:g}km"
+
+
+def _children_peak_rss_mb() -> float:
+    """The largest peak RSS of this process's finished children (getrusage; MB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+
+
 def main_long(args) -> int:
     """The long drive: flat per-frame cost and a store bounded by the window."""
     from jaxmap.bench import base_overrides
     from jaxmap.synth.city import generate_city
 
-    data = args.data if args.data != "data/city_bench" else "data/city_long"
+    km = getattr(args, "length_km", None)
+    data = long_data_dir(args)
     out = args.out
     os.makedirs(out, exist_ok=True)
     if not os.path.isfile(os.path.join(data, "poses.txt")):
-        print(f"[bench] synthesizing the long drive into {data}")
-        generate_city(data, seed=0, long=True)
+        what = "the long drive" if km is None else f"the {km:g} km long drive"
+        print(f"[bench] synthesizing {what} into {data}")
+        generate_city(data, seed=0, long=True, length_km=km)
+    elif km is not None and os.path.isfile(os.path.join(data, "meta.json")):
+        with open(os.path.join(data, "meta.json")) as f:
+            have = (json.load(f).get("trajectory") or {}).get("length_km")
+        if have != km:
+            raise SystemExit(f"[bench] {data} holds a drive of {'the serpentine' if have is None else f'{have:g} km'}, "
+                             f"not {km:g} km; give another --data (or delete it to synthesize it again)")
     base = base_overrides(args, data)[1:] + ["checkpoint_every=100000"]
     cache = os.path.join(out, "xla_cache")
-    print(f"[bench] long drive: jaxmap map on {data}", flush=True)
+    print(f"[bench] long drive: jaxmap map on {data}" + (f" (--set {' --set '.join(args.overrides)})"
+                                                         if args.overrides else ""), flush=True)
     s = map_in_subprocess(data, os.path.join(out, "long"), cache, base, evaluate=False)
+    child_peak = _children_peak_rss_mb()  # (the mapping process: this process's only child)
     frames = s["frames"]
     tot = np.array([r["total_s"] for r in frames])
     n = len(tot)
@@ -266,11 +353,27 @@ def main_long(args) -> int:
     pairs = [r["store_pairs"] for r in frames]
     flat, ratio = store_flat_after_full(pairs)
     print(f"store flat once the window is full: {flat} (last half / first half max = {ratio:.2f})")
+    tables = {f"every_{k}": long_table(frames, k) for k in LONG_EVERY}
+    for k in LONG_EVERY:
+        print()
+        print_long_table(tables[f"every_{k}"], f"every {k} frames:")
+    late = late_ratio(frames)
+    print()
+    if late is None:
+        print(f"median s/frame, last 500 frames over frames 500-1000: n/a ({n} frames, fewer than 1000)")
+    else:
+        print(f"median s/frame, frames {late['late'][0]}-{late['late'][1]}: {late['median_late_s']:.3f}; frames "
+              f"500-999: {late['median_500_1000_s']:.3f}; ratio {late['ratio']:.3f} (target <= {LATE_TARGET:.2f}: "
+              f"{'met' if late['within_10pct'] else 'NOT met'})")
+    print(f"peak RSS of the mapping process (getrusage of the children): {child_peak:.0f} MB")
     with open(os.path.join(out, "long.json"), "w") as f:
         json.dump({"median_100_200": ma, "median_900_1000": mb, "ratio": mb / ma, "wall_s": s["wall_s"],
                    "s_per_frame": s["wall_s_per_frame"], "compile_s": s.get("compile_s"),
                    "peak_rss_mapping_mb": s.get("peak_rss_mapping_mb"), "store_flat": flat,
+                   "data": data, "length_km": km, "overrides": list(args.overrides), "tables": tables,
+                   "late_ratio": late, "process_peak_rss_mb": child_peak,
                    "frames": [{k: r[k] for k in ("frame", "total_s", "store_pairs", "leaf_voxels", "feature_rows",
-                                                 "feature_capacity", "rss_mb", "peak_rss_mb")}
+                                                 "feature_capacity", "rss_mb", "peak_rss_mb", "device_mb",
+                                                 "submaps_resident", "submaps_on_disk") if k in r}
                               for r in frames]}, f, indent=1)
     return 0

@@ -11,10 +11,13 @@ A vehicle drives one closed loop around the central block (right lane, counter-c
 LiDAR at 1.73 m. With long=True the city is a larger grid (6 N-S x 5 E-W streets, 256 m x 200 m) and the
 vehicle drives a ~1.1 km serpentine through it instead (right lane, every E-W street once, joined at
 alternate ends; not closed), ~1.09 m per frame, so the area seen grows about linearly with the frames
-(long-drive memory benchmarks). Every preset drives like a car's LiDAR at 10 Hz (`jaxmap.synth.drive`):
-frames ~1 m apart at a constant speed, turns of at least 8 m radius, at most ~7.3 deg of heading change
-between two scans (meta.json "trajectory": "motion" holds the figures of the frames written; fewer
---frames than the preset's spread over a loop turn faster). Written in the KITTI odometry layout, with
+(long-drive memory benchmarks). long with length_km=X drives about X km through the same city: the
+serpentine, then loops around groups of blocks (LONG_LOOPS) that run back over streets already driven and
+pass the same intersections again, like KITTI's sequence 00 (`long_route`, `route_revisits`). Every
+preset drives like a car's LiDAR at 10 Hz (`jaxmap.synth.drive`): frames ~1 m apart at a constant speed,
+turns of at least 8 m radius, at most ~7.3 deg of heading change between two scans (meta.json
+"trajectory": "motion" holds the figures of the frames written; fewer --frames than the preset's spread
+over a loop turn faster). Written in the KITTI odometry layout, with
 the SHINE/N3 pose convention:
 
     velodyne/000000.bin ...  float32 x,y,z,intensity in the LiDAR frame (x forward, y left, z up)
@@ -350,22 +353,182 @@ def _snake_waypoints(P: CityPreset) -> np.ndarray:
     return np.array(pts)
 
 
-def long_route(P: CityPreset | None = None) -> RoutePath:
-    """The long preset's drive (a RoutePath over `_snake_waypoints`), ~1115 m."""
+# The long drive past the serpentine (`long_route(length_m=...)`, `jaxmap synth city --long --length-km X`):
+# loops around groups of blocks, like KITTI's sequence 00, which passes the same intersections again. Each
+# loop is a rectangle of blocks (i0, i1, j0, j1: indices of its N-S and E-W streets in P.street_lines())
+# driven once around, clockwise ("cw", right turns) or counter-clockwise; it is entered where the drive
+# reaches it soonest and left where it was entered. The list repeats with the directions reversed (the
+# streets driven the other way) until the length is reached.
+LONG_LOOPS = (
+    (3, 5, 2, 4, "cw"),    # the serpentine's last blocks, back down the east edge
+    (1, 3, 1, 3, "ccw"),   # the centre
+    (0, 2, 2, 4, "cw"),    # the north-west
+    (2, 4, 0, 2, "ccw"),   # the south, over the first streets of the serpentine
+    (0, 5, 0, 4, "cw"),    # the whole city's edge
+    (1, 4, 2, 3, "ccw"),   # a row of three blocks north of the centre
+)
+_HEADINGS = ((1, 0), (0, 1), (-1, 0), (0, -1))  # grid steps (node indices): east, north, west, south
+_TURN_COST_M = 10.0  # the transits between the loops prefer going straight on
+
+
+def _heading_of(a, b) -> int:
+    return _HEADINGS.index((int(np.sign(b[0] - a[0])), int(np.sign(b[1] - a[1]))))
+
+
+def _transits(P: CityPreset, node, heading: int):
+    """Shortest drives (Dijkstra; metres plus _TURN_COST_M a turn) from `node` (i, j) arrived at with
+    `heading` over the grid's intersections, never turning back: (cost, previous state) per state (i, j,
+    heading arrived with)."""
+    import heapq
+
+    xs, ys = P.street_lines()
+    start = (*node, heading)
+    dist, prev, heap = {start: 0.0}, {}, [(0.0, start)]
+    while heap:
+        d, (i, j, h) = heapq.heappop(heap)
+        if d > dist[(i, j, h)]:
+            continue
+        for h2, (di, dj) in enumerate(_HEADINGS):
+            i2, j2 = i + di, j + dj
+            if h2 == (h + 2) % 4 or not (0 <= i2 < len(xs) and 0 <= j2 < len(ys)):
+                continue  # no U-turns; inside the grid
+            d2 = d + abs(xs[i2] - xs[i]) + abs(ys[j2] - ys[j]) + (_TURN_COST_M if h2 != h else 0.0)
+            if d2 < dist.get((i2, j2, h2), np.inf):
+                dist[(i2, j2, h2)], prev[(i2, j2, h2)] = d2, (i, j, h)
+                heapq.heappush(heap, (d2, (i2, j2, h2)))
+    return dist, prev
+
+
+def _loop_cycle(i0: int, i1: int, j0: int, j1: int, way: str) -> list:
+    """The intersections around a rectangle of blocks in driving order (closed: the first follows the last)."""
+    ccw = ([(i, j0) for i in range(i0, i1)] + [(i1, j) for j in range(j0, j1)]
+           + [(i, j1) for i in range(i1, i0, -1)] + [(i0, j) for j in range(j1, j0, -1)])
+    return ccw if way == "ccw" else [ccw[0]] + ccw[:0:-1]
+
+
+def _loop_nodes(P: CityPreset, length_m: float) -> list:
+    """The intersections (i, j) the long drive passes, in order, until it is at least length_m long (or
+    further): the serpentine, then LONG_LOOPS, each reached by the shortest transit."""
+    xs, ys = P.street_lines()
+    nodes = []
+    for j in range(len(ys)):
+        row = range(len(xs)) if j % 2 == 0 else range(len(xs) - 1, -1, -1)
+        nodes += [(i, j) for i in row]
+
+    def length(ns):
+        W = _turns_only(np.array([(xs[i], ys[j]) for i, j in ns], dtype=np.float64))
+        return RoutePath(W, P.lane_offset, P.corner_radius).length
+
+    k = 0
+    while length(nodes) < length_m:
+        i0, i1, j0, j1, way = LONG_LOOPS[k % len(LONG_LOOPS)]
+        if (k // len(LONG_LOOPS)) % 2:
+            way = "cw" if way == "ccw" else "ccw"
+        k += 1
+        cyc = _loop_cycle(i0, i1, j0, j1, way)
+        n = len(cyc)
+        dist, prev = _transits(P, nodes[-1], _heading_of(nodes[-2], nodes[-1]))
+        entries = [(dist.get((*cyc[(e + 1) % n], _heading_of(cyc[e], cyc[(e + 1) % n])), np.inf), e)
+                   for e in range(n)]
+        _, e = min(entries)
+        state, way_in = (*cyc[(e + 1) % n], _heading_of(cyc[e], cyc[(e + 1) % n])), []
+        while state in prev:  # the transit, ending with the loop's first leg
+            way_in.append(state[:2])
+            state = prev[state]
+        nodes += way_in[::-1] + [cyc[(e + m) % n] for m in range(2, n + 1)]
+    return nodes
+
+
+def _turns_only(W: np.ndarray) -> np.ndarray:
+    """Waypoints [n,2] without the points where a drive goes straight on (RoutePath's corners all turn)."""
+    a, b = W[1:-1] - W[:-2], W[2:] - W[1:-1]
+    turn = np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]) > 1e-9
+    return W[np.r_[True, turn, True]] if len(W) > 2 else W
+
+
+def long_waypoints(P: CityPreset | None = None, length_m: float | None = None) -> np.ndarray:
+    """The long drive's waypoints [n,2] (RoutePath's): the serpentine (`_snake_waypoints`) alone, or with
+    length_m the serpentine and then LONG_LOOPS, cut to length_m: the last leg shortened so the route is
+    length_m long (or, where length_m falls in a corner, the route ends before that corner, < 5 m short)."""
     P = P or LONG
-    return RoutePath(_snake_waypoints(P), P.lane_offset, P.corner_radius)
+    if length_m is None:
+        return _snake_waypoints(P)
+    if not length_m > 0:
+        raise ValueError(f"the long drive's length must be > 0 m, not {length_m:g}")
+    xs, ys = P.street_lines()
+    nodes = _loop_nodes(P, length_m)
+    pts = np.array([(xs[i], ys[j]) for i, j in nodes], dtype=np.float64)
+    # the fewest intersections that reach length_m (the length grows with every one)
+    lo, hi = 1, len(pts) - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if RoutePath(_turns_only(pts[:mid + 1]), P.lane_offset, P.corner_radius).length >= length_m:
+            hi = mid
+        else:
+            lo = mid + 1
+    W = _turns_only(pts[:lo + 1])
+    route = RoutePath(W, P.lane_offset, P.corner_radius)
+    excess, last = route.length - length_m, route.segs[-1][1]
+    if excess <= last:
+        d = (W[-1] - W[-2]) / np.linalg.norm(W[-1] - W[-2])
+        W[-1] = W[-1] - excess * d
+    elif len(W) > 2:
+        W = W[:-1]  # length_m falls in the last corner: end before it
+    return W
 
 
-def long_drive(n_frames: int | None = None, P: CityPreset | None = None):
+def long_route(P: CityPreset | None = None, length_m: float | None = None) -> RoutePath:
+    """The long preset's drive (a RoutePath over `long_waypoints`): the ~1115 m serpentine, or with
+    length_m a drive of that length that goes on with loops over streets already driven."""
+    P = P or LONG
+    return RoutePath(long_waypoints(P, length_m), P.lane_offset, P.corner_radius)
+
+
+def route_revisits(route, P: CityPreset | None = None, step: float = 1.0, gap_m: float = 60.0) -> dict:
+    """How much of a drive passes again where it has been: {"intersections": the grid intersections it
+    passes, "intersections_passed_again": those it passes more than once, "max_passes": the most passes of
+    one, "revisited_m": metres driven within 1.5 m of the drive at least gap_m earlier (either lane)}. A
+    pass: a run of the route's points (every `step` m) within road_width / 2 + 1 m of the crossing's centre."""
+    from scipy.spatial import cKDTree
+
+    P = P or LONG
+    n = max(int(np.ceil(route.length / step)), 1)
+    s = np.arange(n + 1) * (route.length / n)
+    xy = np.array([route.at(v)[:2] for v in s])
+    xs, ys = P.street_lines()
+    passes = []
+    for x in xs:
+        for y in ys:
+            near = np.flatnonzero(np.hypot(xy[:, 0] - x, xy[:, 1] - y) < P.road_width / 2 + 1.0)
+            passes.append(0 if len(near) == 0 else 1 + int(np.count_nonzero(np.diff(near) > 1)))
+    passes = np.array(passes)
+    again = np.zeros(len(xy), bool)
+    for a, b in cKDTree(xy).query_pairs(1.5):
+        if abs(s[b] - s[a]) >= gap_m:
+            again[max(a, b)] = True
+    return {"intersections": int((passes > 0).sum()), "intersections_passed_again": int((passes > 1).sum()),
+            "max_passes": int(passes.max()), "revisited_m": round(float(again.sum()) * route.length / n, 1)}
+
+
+def long_drive(n_frames: int | None = None, P: CityPreset | None = None, length_km: float | None = None):
     """Frames of the long drive without building the city: (route, T_world_lidar [n,4,4], spacing (m)).
 
     The preset's `frames` span the whole route (spacing = length / (frames - 1), ~1.09 m). Fewer frames
     keep that spacing and stop early (the first n frames of the same drive), more are spread over the
-    whole route at a smaller spacing."""
+    whole route at a smaller spacing. length_km: a drive of about that length (`long_route`), its frames
+    at the preset's spacing (3.7 km: 3400 frames); the frames before the serpentine's last corner are the
+    serpentine's."""
     P = P or LONG
-    route = long_route(P)
-    n_frames = int(n_frames or P.frames)
-    spacing = route.length / (max(n_frames, P.frames) - 1)
+    if length_km is None:
+        route = long_route(P)
+        n_frames = int(n_frames or P.frames)
+        spacing = route.length / (max(n_frames, P.frames) - 1)
+        return route, _poses_at(route, [i * spacing for i in range(n_frames)]), spacing
+    base = long_route(P).length / (P.frames - 1)
+    route = long_route(P, max(round(float(length_km) * 1000.0 / base), 1) * base)
+    full = int(np.floor(route.length / base + 1e-6)) + 1
+    n_frames = int(n_frames or full)
+    spacing = base if n_frames <= full else route.length / (n_frames - 1)
     return route, _poses_at(route, [i * spacing for i in range(n_frames)]), spacing
 
 
@@ -381,12 +544,16 @@ def preset(small: bool = False, long: bool = False, layout: str = "grid"):
     return LONG if long else SMALL if small else DEFAULT
 
 
-def preset_drive(P, n_frames: int | None = None, layout: str = "grid", long: bool = False):
+def preset_drive(P, n_frames: int | None = None, layout: str = "grid", long: bool = False,
+                 length_km: float | None = None):
     """The sensor's drive of a preset without building its scene: (path, T_world_lidar [n,4,4], spacing (m)).
 
     P: a CityPreset or SuburbPreset (`preset`); n_frames: default P.frames. The loops (grid, suburb) spread
     the frames evenly over one loop; long: `long_drive` (the city depends on the whole route, never on
-    n_frames: a short run sees the same scene)."""
+    n_frames: a short run sees the same scene), with length_km a drive of about that length (default
+    frames: the route's at the preset's spacing)."""
+    if long and length_km is not None:
+        return long_drive(n_frames, P, length_km)
     n_frames = int(n_frames or P.frames)
     if long:
         return long_drive(n_frames, P)
@@ -744,7 +911,7 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
                   noise_m: float = 0.0, beams: int | str | None = None, azimuth_steps: int | None = None,
                   pedestrians: bool = False, long: bool = False, layout: str = "grid", traffic: int = 0,
                   realistic: str | tuple = (), lane_shift_m: float = 0.0, start_m: float = 0.0,
-                  parking: bool = False) -> dict:
+                  parking: bool = False, length_km: float | None = None) -> dict:
     """Write a synthetic LiDAR sequence (KITTI layout, see the module docstring) into out_dir.
 
     seed: everything (layout, sizes, noise) is deterministic from it.
@@ -752,8 +919,15 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
            130 frames 0.96 m apart, 64 x 1024 beams.
     long: 256 m x 200 m city, a 1115 m serpentine drive (not closed), 1025 frames 1.09 m apart, the
           default's 64 x 1024 beams and GT density (1 GB of scans; see `long_drive`).
+    length_km: (long only) a drive of about that many km through the same city instead: the serpentine,
+          then loops around groups of blocks over streets already driven, passing its intersections again
+          (LONG_LOOPS, like KITTI's sequence 00), frames 1.09 m apart (3.7 km: 3400 frames, ~3.4 GB of
+          scans, written one frame at a time); meta.json "trajectory" records its "length_km" and
+          "revisits" (`route_revisits`). The scene differs from the serpentine's only where the longer route
+          clears parked cars off its corners.
     n_frames: frames evenly spaced over the one closed loop (default per preset); with long, the first
-              n_frames of the drive at the preset's 1.09 m (spread over the whole route if more).
+              n_frames of the drive at the preset's 1.09 m (spread over the whole route if more; default
+              1025, with length_km the route's frames).
     noise_m: std of Gaussian range noise (m).
     beams: the LiDAR's beams (default per preset): a count of uniform beams from -25 to +2 deg, or a real
            sensor's table by name (`jaxmap.synth.beams`: "hdl64", KITTI's two-block HDL-64E with per-beam
@@ -793,11 +967,19 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
         raise ValueError("traffic must be >= 0")
     if (traffic or parking) and long:
         raise ValueError("traffic and parking are not available with long (the grid and suburb loops only)")
+    if length_km is not None:
+        if not long:
+            raise ValueError("length_km is the long drive's length; it needs long")
+        length_km = float(length_km)
+        if not (np.isfinite(length_km) and length_km > 0):
+            raise ValueError(f"length_km must be a positive number of km, not {length_km:g}")
     if (traffic or parking) and (lane_shift_m or start_m):
         raise ValueError("traffic and parking follow the first drive's lanes; they do not combine with "
                          "lane_shift_m / start_m")
     modes = realistic_modes(realistic)
     P = preset(small, long, layout)
+    if length_km is not None and not n_frames:  # (by default the route's frames, at the preset's spacing)
+        n_frames = len(long_drive(None, P, length_km)[1])
     n_frames = int(n_frames or P.frames)
     pattern, count = beam_patterns.parse(beams)
     elev_deg = beam_patterns.elevations_deg(pattern, count or (P.beams if pattern == "uniform" else None), seed)
@@ -808,7 +990,7 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
     out_dir = os.fspath(out_dir)
     scan_dir = C.prepare_out_dir(out_dir, "velodyne", ".bin")
 
-    path, T_wl, spacing = preset_drive(P, n_frames, layout=layout, long=long)
+    path, T_wl, spacing = preset_drive(P, n_frames, layout=layout, long=long, length_km=length_km)
     ped_block = None
     if long:
         xb, yb = _intervals(P)
@@ -931,7 +1113,9 @@ def generate_city(out_dir, *, seed: int = 0, small: bool = False, n_frames: int 
                    "noise_m": float(noise_m)},
         "trajectory": ({"route_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
                         "driven_length_m": round(spacing * (n_frames - 1), 3), "closed_loop": False,
-                        "waypoints": C.rounded(_snake_waypoints(P), 3)} if long else
+                        "waypoints": C.rounded(_snake_waypoints(P) if length_km is None else path.waypoints, 3),
+                        **({"length_km": length_km, "revisits": route_revisits(path, P)} if length_km is not None
+                           else {})} if long else
                        {"loop_length_m": round(path.length, 3), "frame_spacing_m": round(spacing, 4),
                         "closed_loop": True, **({"lane_shift_m": float(lane_shift_m), "start_m": float(start_m)}
                                                 if lane_shift_m or start_m else {})}) | {"motion": drive_stats(T_wl, closed=not long)},
