@@ -295,6 +295,41 @@ def extract_mesh(
     return _trimesh_of(verts, faces, origin, resolution)
 
 
+def extract_mesh_groups(sdf_fn_of: Callable[[int], SdfFn], groups, cell_size: float, resolution: float, *,
+                        origin=(0.0, 0.0, 0.0), min_component_faces: int = 0, max_points_per_call: int = 2**18):
+    """`extract_mesh` of the union of several groups of cells meshed one group after another, each with its
+    own SDF function `sdf_fn_of(g)` (a map of submaps meshes each submap's cells while that submap and its
+    neighbours are in memory). The groups must not share cells; the pieces are welded on the common lattice
+    (vertices at the same lattice position merged) before small components are dropped, so a surface that
+    crosses from one group into the next is one component, as in one `extract_mesh` call."""
+    parts_v, parts_f, n = [], [], 0
+    chunk_cells = None
+    for g, cells in enumerate(groups):
+        cells = np.asarray(cells)
+        if cells.size == 0:
+            continue
+        cells, r, chunk_cells = _checked_lattice(cells, cell_size, resolution, None, max_points_per_call)
+        vs, fs = _mesh_bricks(sdf_fn_of(g), cells, chunk_cells, r, np.asarray(origin, np.float64).reshape(3),
+                              resolution, max_points_per_call)
+        # the faces of `_mesh_bricks` index into the concatenation of its own vertex arrays
+        parts_v += vs
+        parts_f += [f + n for f in fs]
+        n += sum(len(v) for v in vs)
+    if not parts_f:
+        return _empty_mesh()
+    verts = np.concatenate(parts_v, axis=0)
+    faces = np.concatenate(parts_f, axis=0)
+    # one vertex per lattice position: the groups' copies of a vertex on the faces they share
+    _, first, inverse = np.unique(np.round(verts * 1024.0).astype(np.int64), axis=0, return_index=True,
+                                  return_inverse=True)
+    faces = first[inverse.reshape(-1)][faces]
+    verts, faces = _merge_border_vertices(verts, faces, chunk_cells * int(round(cell_size / resolution)))
+    faces = _drop_small_components(faces, len(verts), int(min_component_faces))
+    if len(faces) == 0:
+        return _empty_mesh()
+    return _trimesh_of(verts, faces, origin, resolution)
+
+
 def _checked_lattice(cells: np.ndarray, cell_size: float, resolution: float, chunk_cells, max_points_per_call: int):
     """`extract_mesh`'s arguments checked: (cells [M,3] int64, lattice intervals per cell, cells per brick side)."""
     if cells.ndim != 2 or cells.shape[1] != 3:

@@ -6,7 +6,7 @@ from jaxmap.config.loading import (apply_overrides, config_from_args, from_dict,
                                    unknown_key_message)
 from jaxmap.config.rules import (CHECKS, DATA_KINDS, RULES, Rule, above, at_least, lattice_problem, one_of,
                                  strictly_within, validate, within)
-from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, EvidenceConfig, GridConfig, ImtConfig, LatentMapConfig,
+from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, EvidenceConfig, SubmapsConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, SamplingConfig,
                                   TrainConfig, WindowConfig)
 from jaxmap.config.prior import (EncoderConfig, LatentDecoderConfig, PriorConfig, PriorDataConfig, PriorModelConfig,
@@ -18,7 +18,7 @@ __all__ = ["apply_overrides", "config_from_args", "from_dict", "load_config", "r
            "shipped_config_dir", "shipped_config_path", "shipped_configs",
            "to_dict", "unknown_key_message", "CHECKS", "DATA_KINDS", "RULES", "Rule", "above", "at_least",
            "lattice_problem", "one_of", "strictly_within", "validate", "within", "DataConfig",
-           "DecoderConfig", "EvalConfig", "EvidenceConfig", "GridConfig", "ImtConfig", "LatentMapConfig", "LatentMeshConfig",
+           "DecoderConfig", "EvalConfig", "EvidenceConfig", "SubmapsConfig", "GridConfig", "ImtConfig", "LatentMapConfig", "LatentMeshConfig",
            "MapConfig", "MeshConfig", "PreprocessConfig", "SamplingConfig", "TrainConfig", "WindowConfig",
            "FrontEndConfig", "LoopConfig", "OdometryConfig", "SlamConfig", "EncoderConfig", "LatentDecoderConfig", "PriorConfig", "PriorDataConfig",
            "PriorModelConfig", "PriorTrainConfig", "ConfigError"]

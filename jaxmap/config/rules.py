@@ -12,6 +12,7 @@ from typing import Any, Callable
 
 from jaxmap.config.schema import (DataConfig, DecoderConfig, EvalConfig, GridConfig, ImtConfig, LatentMapConfig,
                                   LatentMeshConfig, MapConfig, MeshConfig, PreprocessConfig, EvidenceConfig, SamplingConfig,
+                                  SubmapsConfig,
                                   TrainConfig, WindowConfig)
 from jaxmap.config.prior import EncoderConfig
 from jaxmap.config.slam import (EDGE_INFORMATION, MAP_KINDS, N3_LOOP_MODES, ODOMETRY_METHODS, FrontEndConfig,
@@ -82,6 +83,10 @@ def _map_checks(c: "MapConfig", x: str):
     p = lattice_problem(c.mesh.resolution_m, c.grid.leaf_vox_size, f"{x}grid.leaf_vox_size")
     if p:
         yield (f"{x}mesh.resolution_m", f"{x}grid.leaf_vox_size"), f"{x}mesh.resolution_m={c.mesh.resolution_m!r} {p}"
+    if c.submaps.enabled and c.window.mode != "voxel":
+        yield (f"{x}submaps.enabled", f"{x}window.mode"), (
+            f"{x}submaps.enabled=true maps with the voxel window only (window.mode={c.window.mode!r} is a replay "
+            "ablation of one grid): set window.mode=voxel or submaps.enabled=false")
 
 
 def host_preprocess_checks(c: Any, x: str):
@@ -154,6 +159,7 @@ RULES: dict[type, dict[str, Rule]] = {
                        "normal_cell_m": above(0.0), "normal_levels": at_least(1), "veil_m": at_least(0.0),
                        "image_rows": at_least(0), "image_cols": at_least(0), "image_elev_step_deg": at_least(0.0)},
     EvidenceConfig: {"margin_m": at_least(0.0), "void_frames": at_least(1), "max_range_m": above(0.0)},
+    SubmapsConfig: {"length_m": above(0.0), "blend_m": at_least(0.0), "resident": at_least(1)},
     SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),

@@ -138,6 +138,18 @@ class EvidenceConfig:
 
 
 @dataclass(frozen=True)
+class SubmapsConfig:
+    enabled: bool = False            # the map is a chain of N3 submaps (each an N3 map of its own), the far
+                                     # ones written to the run's submaps/ and dropped from memory: a drive of any
+                                     # length in bounded memory
+    length_m: float = 60.0           # a new submap starts when the sensor is this far from the current one's
+                                     # first frame (or an earlier one's first frame within half of it is taken up again)
+    blend_m: float = 4.0             # a query reads every submap that holds it within this of the nearest
+                                     # one (distance to the submaps' sensor paths), weights falling linearly to 0
+    resident: int = 1                # submaps held in memory at once, the one mapped included (the rest on disk)
+
+
+@dataclass(frozen=True)
 class MeshConfig:
     resolution_m: float = 0.1        # marching-cubes lattice spacing, metres (must divide leaf_vox_size)
     min_component_faces: int = 50    # drop connected components smaller than this
@@ -165,6 +177,7 @@ class MapConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     window: WindowConfig = field(default_factory=WindowConfig)
     evidence: EvidenceConfig = field(default_factory=EvidenceConfig)
+    submaps: SubmapsConfig = field(default_factory=SubmapsConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
     eval: EvalConfig = field(default_factory=EvalConfig)
     output: str = "runs/map"         # run directory (`--out` overrides it)

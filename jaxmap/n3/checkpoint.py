@@ -167,21 +167,22 @@ def _expand_pool(empty, c: dict):
                             for k in ("pairs", "surface", "frame", "voxel_row")}, n=jnp.int32(n))
 
 
-def meta_of(cfg: MapConfig, state: n3state.N3State, timings: list) -> dict:
-    """meta.json of a checkpoint: the config, frames mapped, layout, capacities and timings so far."""
+def meta_of(cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> dict:
+    """meta.json of a checkpoint: the config, frames mapped, layout, capacities and timings so far, and
+    `extra` (a map of submaps: its index, "submaps")."""
     return {"config": to_dict(cfg), "frame": int(state.frame), "layout": "compact-1",
-            "capacity": dataclasses.asdict(n3state.Capacities.of(state)), "timings": list(timings)}
+            "capacity": dataclasses.asdict(n3state.Capacities.of(state)), "timings": list(timings), **(extra or {})}
 
 
-def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> None:
+def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> None:
     """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are
     kept), one array at a time: on the CPU straight from the state's buffers, with no copy."""
     wait_for_saves()
-    _write(path, cfg, state, timings)
+    _write(path, cfg, state, timings, extra)
 
 
-def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list) -> None:
-    save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings), step=int(state.frame))
+def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> None:
+    save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings, extra), step=int(state.frame))
 
 
 _PENDING: list = []  # the one background save in flight: [thread, error or None]
@@ -192,7 +193,8 @@ _PENDING: list = []  # the one background save in flight: [thread, error or None
 _snapshot = jax.jit(lambda state: jax.tree_util.tree_map(jnp.copy, state))
 
 
-def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, copy: bool = True) -> None:
+def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, copy: bool = True,
+                     extra: dict | None = None) -> None:
     """Like `save_state`, but written in a background thread from a copy of the state made on the device
     (`_snapshot`: asynchronous, in order before the next frame program, which donates the state's
     buffers), so the caller goes on at once; copy=False: from `state` itself, which nothing may change
@@ -203,7 +205,7 @@ def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings:
 
     def work():
         try:
-            _write(path, cfg, snapshot, timings)
+            _write(path, cfg, snapshot, timings, extra)
         except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
             slot[1] = e
 
@@ -234,6 +236,13 @@ def load_state(path: str) -> tuple[MapConfig, n3state.N3State, list]:
     `NoCheckpointError` when there is none."""
     wait_for_saves()
     return load(path, _build, "N3 map")
+
+
+def load_state_meta(path: str) -> tuple[MapConfig, n3state.N3State, list, dict]:
+    """`load_state`'s (config, state, timings) and the checkpoint's whole meta.json (a map of submaps
+    keeps its index there)."""
+    wait_for_saves()
+    return load(path, lambda ckpt, meta: (*_build(ckpt, meta), meta), "N3 map")
 
 
 def _build(ckpt: str, meta: dict) -> tuple[MapConfig, n3state.N3State, list]:

@@ -41,6 +41,11 @@ class N3Mapper:
         heap (about a gigabyte on a CPU) and the map are not in memory at the same time, and the map
         frame is placed at its pose (`place_origin`)."""
         self.cfg = cfg or MapConfig()
+        if self.cfg.submaps.enabled and type(self) is N3Mapper:
+            from jaxmap.errors import ConfigError
+
+            raise ConfigError("submaps.enabled=true: a map of submaps is a SubmapMapper (jaxmap map makes one); "
+                              "N3Mapper maps one grid (jaxmap slam too): set submaps.enabled=false")
         if state is None and first_scan is not None:
             self.cfg = scan.resolve_layout(self.cfg, first_scan[0])
         self.static = core.N3Static.from_config(self.cfg)
@@ -149,14 +154,15 @@ class N3Mapper:
         return {**info, "kept": kept}
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
-               main_s: float = 0.0) -> list[tuple[dict, np.ndarray | None]]:
+               main_s: float = 0.0, pose=None, origin=None) -> list[tuple[dict, np.ndarray | None]]:
         """Dispatch one frame's program and return without waiting for it: batch is its scan as the
         frame program takes it (`scan.Uploader`: padded, in the map frame of `place_origin`, on the
         device), of `points` prepared points. Returns (record, kept) of the frames finished meanwhile (the
         one before it, usually), oldest first: the record is the one kept in `timings`, kept ([M] bool,
         None with `preprocess.device`) the prepared points that got training samples. prepare_s / wait_s:
         seconds its preparation took / the loop waited for it; main_s: seconds of the main thread's before
-        the dispatch (in its record's total_s)."""
+        the dispatch (in its record's total_s). pose, origin: the frame's pose and the origin its batch was
+        uploaded at (`Frame.origin`), which a map of submaps needs (`SubmapMapper`; one grid ignores them)."""
         if self.static.preprocess is not None and "scan_rows" not in self._headroom:
             # the first frame: size the preprocessed rows by what it keeps
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
@@ -263,6 +269,11 @@ class N3Mapper:
         """[3] float64 world position of the map frame."""
         return self._origin
 
+    def tracking_map(self, position_w) -> tuple[core.N3Static, core.N3State, np.ndarray]:
+        """(static, state, T_world_local [4, 4]) of the map a scan near world position_w [3] is tracked
+        against (`jaxmap localize`): the whole map, in the world frame (a map of submaps: the nearest)."""
+        return self.static, self.state, np.eye(4)
+
     def sdf(self, points_w) -> tuple[np.ndarray, np.ndarray]:
         """Signed distance (metres) at world points [N,3] -> (sdf [N] float32, valid [N] bool)."""
         return query_world(self.static, self.state, points_w)
@@ -310,9 +321,16 @@ class N3Mapper:
 
     @classmethod
     def load(cls, path: str) -> "N3Mapper":
-        from jaxmap.n3.checkpoint import load_state
+        """The map of checkpoint directory `path` (or one checkpoint `path/<step>`): an N3Mapper, or a
+        `SubmapMapper` where the checkpoint holds a map of submaps."""
+        from jaxmap.n3.checkpoint import load_state_meta
 
-        cfg, state, timings = load_state(path)
+        cfg, state, timings, meta = load_state_meta(path)
+        if "submaps" in meta:
+            from jaxmap.n3.submap_mapper import SubmapMapper, submaps_dir
+
+            return SubmapMapper(cfg, state, timings, directory=submaps_dir(path, meta["submaps"]),
+                                index=meta["submaps"])
         return cls(cfg, state, timings)
 
 

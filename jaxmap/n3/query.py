@@ -80,14 +80,19 @@ def mesh_cells(leaf_voxels: np.ndarray, mask_level: int) -> np.ndarray:
     return (parents[:, None, :] * k + offs[None]).reshape(-1, 3).astype(np.int32)
 
 
+def check_mesh_resolution(leaf: float, res: float) -> None:
+    """ConfigError unless the mesh resolution `res` is positive and divides the leaf voxel size."""
+    k = leaf / res if res > 0 else 0.0
+    if res <= 0 or abs(k - round(k)) > 1e-6:
+        raise ConfigError(f"mesh resolution {res:g} m must be positive and divide the leaf voxel size "
+                          f"{leaf:g} m (e.g. {leaf / 2:g} or {leaf:g})")
+
+
 def extract_mesh_of(static: N3Static, state: N3State, res: float, min_component_faces: int):
     """Marching-cubes mesh of the zero level set (trimesh.Trimesh, world frame) on the lattice
     `k * res` of the map frame, whose origin is a multiple of the coarsest voxel: `res` must divide
     the leaf voxel size, so every method and run meshes on the same world lattice."""
-    k = static.leaf / res
-    if res <= 0 or abs(k - round(k)) > 1e-6:
-        raise ConfigError(f"mesh resolution {res:g} m must be positive and divide the leaf voxel size "
-                          f"{static.leaf:g} m (e.g. {static.leaf / 2:g} or {static.leaf:g})")
+    check_mesh_resolution(static.leaf, res)
     n = int(state.voxels.count)
     coords = np.asarray(state.voxel_coord[:n])
     if static.evidence:

@@ -6,6 +6,8 @@ A run directory holds:
   checkpoint/     the last two checkpoints of the whole map, `<frames>/` (one .npy per array + checksums; written
                   every `checkpoint_every` frames, at the end, and on Ctrl-C or SIGTERM), what
                   `--resume` and `jaxmap mesh` read (the newest intact one)
+  submaps/        with submaps.enabled: one N3 checkpoint per submap, `<id>/<frame>/` (written when the sensor
+                  leaves it; the index of submaps is in checkpoint/)
   mesh.ply        the marching-cubes mesh at mesh.resolution_m (world frame)
   metrics.json    reconstruction metrics, when the sequence has ground truth (gt_points.ply); with moving
                   objects (moving_objects.json) also "dynamic_points": SA / DA of the points trained on
@@ -67,8 +69,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
             mapper.fix_layout(seq.frame(0).points)
             mapper.place_origin(seq.frame(0).pose)
         cfg = mapper.cfg
-        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(cfg, labeller),
-                            then=scan.Uploader(mapper.origin, device, mapper.bucket))
+        uploader = scan.Uploader(mapper.origin, device, mapper.bucket)
+        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(cfg, labeller), then=uploader)
     else:
         # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
         # is the first pose's, and the first prepared frame gives the program its shapes.
@@ -76,14 +78,17 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
         if first is not None:
             cfg = scan.resolve_layout(cfg, first.points)  # the range-image layout read off the first scan
         origin = origin_at(cfg, first.pose) if first is not None else np.zeros(3)
-        frames = Prefetcher(seq, 0, len(seq), _loader(cfg, labeller), then=scan.Uploader(origin, device))
+        uploader = scan.Uploader(origin, device)
+        frames = Prefetcher(seq, 0, len(seq), _loader(cfg, labeller), then=uploader)
         try:
-            mapper = N3Mapper(cfg, first_frame=frames.first())
+            mapper = new_mapper(cfg, out_dir, first_frame=frames.first())
         except BaseException:
             frames.close()
             raise
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     start = mapper.frames
+    if hasattr(mapper, "follow"):  # a map of submaps moves the uploads' origin to the submap it maps into
+        mapper.follow(uploader)
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
                         every=max(cfg.checkpoint_every, 1), busy=checkpoint.saving, wait=checkpoint.wait_for_saves,
@@ -98,6 +103,16 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
                       point_scores=scores.result(dynamic.voxel_keys(mapper.void_voxels())) if scores is not None else None,
                       wait_saves=checkpoint.wait_for_saves)
+
+
+def new_mapper(cfg: MapConfig, run_dir: str, **kw) -> N3Mapper:
+    """The empty map of a run of `cfg` in `run_dir`: one grid (N3Mapper), or with submaps.enabled a
+    SubmapMapper writing its submaps to run_dir/submaps. kw: N3Mapper's (first_frame, first_scan)."""
+    if cfg.submaps.enabled:
+        from jaxmap.n3.submap_mapper import SubmapMapper
+
+        return SubmapMapper(cfg, directory=os.path.join(run_dir, "submaps"), **kw)
+    return N3Mapper(cfg, **kw)
 
 
 def _loader(cfg: MapConfig, label=None, poses=None):
@@ -153,7 +168,7 @@ class MapSteps:
     def submit(self, frame: Frame) -> list:
         self._frames.append(frame)
         return self._paired(self.mapper.submit(frame.batch, points=len(frame.points), prepare_s=frame.prepare_s,
-                                               wait_s=frame.wait_s))
+                                               wait_s=frame.wait_s, pose=frame.pose, origin=frame.origin))
 
     def drain(self) -> list:
         return self._paired(self.mapper.finish())
@@ -195,7 +210,7 @@ def resume_mapper(run_dir: str, cfg: MapConfig):
     except NoCheckpointError:
         log.warning("%s: no checkpoint yet (the run stopped before its first one, saved every %d frames): "
                     "mapping again from frame 0", run_dir, cfg.checkpoint_every)
-        return N3Mapper(cfg)
+        return new_mapper(cfg, run_dir)
     except CheckpointError as e:
         raise no_usable_checkpoint(run_dir, e) from None
     a, b = to_dict(mapper.cfg), to_dict(cfg)

@@ -125,15 +125,17 @@ class Uploader:
     a prepared frame's scan padded to its bucket (the one of the scans before it while it fits:
     `bucket_for`), in the map frame at `origin_w` [3] float64, put on the device as the frame's `batch`
     (a ScanBatch with the frame's range image if it has one, or with `raw` a RawScan the frame program
-    preprocesses). `bucket`: the bucket so far."""
+    preprocesses), with the origin it is at (`Frame.origin`). `bucket`: the bucket so far; `origin_w` may
+    be moved between frames (a map of submaps moves it to the origin of the submap it maps into)."""
 
     def __init__(self, origin_w: np.ndarray, raw: bool, bucket: int = 0):
         self.origin_w, self.raw, self.bucket = np.asarray(origin_w, np.float64), raw, bucket
 
     def __call__(self, frame):
         self.bucket = bucket_for(len(frame.points), self.bucket)
+        origin = self.origin_w  # read once: a map of submaps moves it (`follow`) from the main thread
         if self.raw:
-            batch = to_raw(frame.points, frame.pose, self.origin_w, self.bucket)
+            batch = to_raw(frame.points, frame.pose, origin, self.bucket)
         else:
-            batch = to_batch(frame.points, frame.normals, frame.pose, self.origin_w, self.bucket, frame.image)
-        return dataclasses.replace(frame, batch=jax.device_put(batch))
+            batch = to_batch(frame.points, frame.normals, frame.pose, origin, self.bucket, frame.image)
+        return dataclasses.replace(frame, batch=jax.device_put(batch), origin=origin)

@@ -113,11 +113,14 @@ class LocalizeStep:
         t0 = time.perf_counter()
         # where constant velocity predicted the pose, LM from it alone first (the search costs more than LM)
         tries = [SEARCH_WIDE_M] if weak else [0.0, SEARCH_NARROW_M]
+        # the map to track against: the whole map, or the submap whose sensor path passes nearest the guess
+        static, state, T = self.mapper.tracking_map(guess[:3, 3])
+        local = np.linalg.inv(T) @ guess
         for search_m in tries:
-            res = track_scan(self.mapper.static, self.mapper.state, frame.points, guess,
-                             dataclasses.replace(self.opts, search_m=search_m))
+            res = track_scan(static, state, frame.points, local, dataclasses.replace(self.opts, search_m=search_m))
             if res.ok:
                 break
+        res = res._replace(pose=T @ res.pose)
         record = {"frame": frame.index, "ok": res.ok, "valid": round(res.valid_fraction, 4),
                   "rms_cm": round(100 * res.rms_m, 2), "iterations": res.iterations, "search_m": search_m,
                   "points": len(frame.points), "track_s": time.perf_counter() - t0}

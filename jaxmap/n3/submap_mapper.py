@@ -1,0 +1,208 @@
+"""`SubmapMapper`: the N3 mapper over a chain of submaps (`submaps.enabled`; `jaxmap.n3.submaps`).
+
+    m = SubmapMapper(cfg, directory="runs/x/submaps")   # or N3Mapper.load(...) of such a run
+    m.add_frame(points_s, pose)            # maps into the submap the pose falls in (a new one, or an old one again)
+    sdf, valid = m.sdf(points_w)           # blended over the submaps that hold the points
+    mesh = m.mesh()                        # streamed through the mesher one submap at a time
+
+It is an `N3Mapper` whose state is the submap being mapped; before a frame whose sensor has left that
+submap (`Submaps.switch_for`), the frames in flight are finished, the submap is parked (written to disk
+in the background, kept in memory while `submaps.resident` allows) and the next one takes its place in
+the frame pipeline (same capacities: the compiled frame program is reused).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+
+import jax
+import numpy as np
+
+from jaxmap import hostmem
+from jaxmap.n3 import core
+from jaxmap.n3.mapper import N3Mapper, _init_state
+from jaxmap.n3.scan_batch import shift
+from jaxmap.n3.submaps import NEW, Submaps
+
+
+class SubmapMapper(N3Mapper):
+    """An N3Mapper over a chain of submaps. directory: where the submaps are written (a run's
+    `submaps/`; default a new temporary folder); index: a checkpoint's submap index (`N3Mapper.load`)."""
+
+    def __init__(self, cfg=None, state=None, timings=None, first_scan=None, first_frame=None, *,
+                 directory: str | None = None, index: dict | None = None):
+        self._subs, self._uploader, self._next_pose = None, None, None
+        super().__init__(cfg, state, timings, first_scan=first_scan, first_frame=first_frame)
+        self._subs = Submaps(self.static, self.cfg, directory or tempfile.mkdtemp(prefix="jaxmap-submaps-"),
+                             live=lambda: self.state)
+        first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
+        if index is not None:
+            self._subs.restore(index)
+        elif self.frames == 0 and first_pose is not None:
+            self._subs.active = self._subs.start(np.asarray(first_pose, np.float64)[:3, 3])
+
+    @property
+    def submaps(self) -> Submaps:
+        return self._subs
+
+    def follow(self, uploader) -> None:
+        """Keep the frame loop's `scan.Uploader` at the origin of the submap being mapped."""
+        self._uploader = uploader
+
+    def place_origin(self, pose) -> None:
+        super().place_origin(pose)
+        if self._subs is not None and not self._subs.infos:
+            self._subs.active = self._subs.start(np.asarray(pose, np.float64)[:3, 3])
+
+    def fix_layout(self, points_s) -> None:
+        super().fix_layout(points_s)
+        self._subs.static, self._subs.cfg = self.static, self.cfg  # the submaps are written with the layout
+
+    def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
+        if self.frames:
+            self._enter(np.asarray(pose, np.float64))
+        self._next_pose = np.asarray(pose, np.float64)  # for `submit`, which `N3Mapper.add_frame` calls
+        return super().add_frame(points_s, pose, prepared)
+
+    def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
+               pose=None, origin=None) -> list:
+        """`N3Mapper.submit`, first moving to the submap the frame's pose [4, 4] (T_world_sensor) falls in;
+        origin: [3] the map frame the batch was uploaded in (`Frame.origin`; moved when it is another's)."""
+        if pose is None:  # from `add_frame`, which has entered the frame's submap
+            pose, self._next_pose = self._next_pose, None
+        elif self.frames:
+            self._enter(np.asarray(pose, np.float64))
+        if pose is None:
+            raise ValueError("SubmapMapper.submit needs the frame's pose (pose=T_world_sensor)")
+        if origin is not None and not np.array_equal(np.asarray(origin, np.float64), self._origin):
+            batch = shift(batch, (np.asarray(origin, np.float64) - self._origin).astype(np.float32))
+        self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames)
+        return super().submit(batch, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s)
+
+    def _enter(self, pose: np.ndarray) -> None:
+        """Switch to the submap of the frame at `pose` when it is not the active one."""
+        target = self._subs.switch_for(pose[:3, 3])
+        if target is None:
+            return
+        self._settle()
+        old_id, old = self._subs.active, self._pipe.state
+        if target == NEW:
+            # An N3 map of its own: a fresh decoder that trains for its first train.freeze_after_frame frames.
+            # (The previous submap's decoder, frozen, does not learn new features from zero: with all of a
+            # grid's features near zero its ReLUs sit where the trained biases put them, mostly dead, and
+            # the features get no gradient; measured: the loss of a new submap stayed at 0.12-0.14.)
+            new = _init_state(self.static, self.cfg, core.Capacities.of(old))
+            new = new.replace(key=jax.random.fold_in(new.key, len(self._subs.infos)))
+            new = core.set_origin(self.static, new, pose[:3, 3])
+            self._pipe.state = None
+            self._subs.park(old_id, old)
+            target = self._subs.start(pose[:3, 3])
+        else:
+            self._pipe.state = None
+            self._subs.park(old_id, old)
+            new = self._subs.take(target)
+        del old
+        self._subs.active = target
+        self._pipe.state = new
+        self._origin = core.origin_world(self.static, new)
+        if self._uploader is not None:
+            self._uploader.origin_w = self._origin
+        hostmem.trim()
+
+    def _collect(self) -> None:
+        n = len(self.timings)
+        super()._collect()
+        if self._subs is None:
+            return
+        for r in self.timings[n:]:
+            r.update({"submap": self._subs.active, "submaps": len(self._subs.infos),
+                      "submaps_resident": self._subs.resident(), "submaps_on_disk": self._subs.on_disk(),
+                      "device_mb": _device_mb()})
+
+    # ---- reading the whole map ---------------------------------------------------------------------
+    def sdf(self, points_w):
+        """Blended signed distance at world points [N, 3] -> (sdf [N] float32, valid [N] bool)."""
+        self._settle()
+        return self._subs.query_world(points_w)
+
+    def sdf_grad(self, points_w):
+        """(sdf [N], d sdf / d x [N, 3]) at world points [N, 3], blended."""
+        self._settle()
+        s, g, _ = self._subs.query_world(points_w, grad=True)
+        return s, g
+
+    def mesh(self, res: float | None = None, min_component_faces: int | None = None):
+        mcf = self.cfg.mesh.min_component_faces if min_component_faces is None else min_component_faces
+        self._settle()
+        return self._subs.mesh(float(res or self.cfg.mesh.resolution_m), mcf)
+
+    def tracking_map(self, position_w):
+        """(static, state, T_world_local) of the submap whose sensor path passes nearest to world
+        position_w [3]: a scan is tracked against one submap (it holds the sensor's range around its path)."""
+        p = np.asarray(position_w, np.float64).reshape(1, 3)
+        d = [self._subs.path_distance(k, p)[0] if self._subs.infos[k].path else np.inf
+             for k in range(len(self._subs.infos))]
+        k = int(np.argmin(d))
+        return self.static, self._subs.state(k), self._subs.infos[k].pose
+
+    def voxel_coords(self, points_s, pose) -> np.ndarray:
+        """[M, 3] int64 world leaf voxels (origin 0: one lattice for every submap) of sensor-frame points."""
+        o = np.round(self._origin / self.static.leaf).astype(np.int64)
+        return super().voxel_coords(points_s, pose) + o
+
+    def void_voxels(self) -> np.ndarray:
+        """[K, 3] int32 world leaf voxels (origin 0) that are void in any submap."""
+        from jaxmap.n3.evidence import void as void_of
+
+        out = []
+        for k in range(len(self._subs.infos)):
+            st = self._subs.state(k)
+            if st.evidence is None:
+                continue
+            n = int(st.voxels.count)
+            void = np.asarray(void_of(st.evidence, self.static.void_frames)[:n])
+            out.append(np.asarray(st.voxel_coord[:n])[void] + np.asarray(st.origin_vox))
+        return np.concatenate(out).astype(np.int32) if out else np.zeros((0, 3), np.int32)
+
+    def live_mesh(self) -> dict:
+        """The live view meshes the submap being mapped."""
+        return super().live_mesh()
+
+    def forget_frames(self, frames) -> int:
+        raise NotImplementedError("a map of submaps does not forget frames (jaxmap slam maps one grid)")
+
+    def reset(self) -> None:
+        raise NotImplementedError("a map of submaps is not reset (jaxmap slam maps one grid)")
+
+    # ---- checkpoints -------------------------------------------------------------------------------
+    def save(self, path: str, background: bool = False, copy: bool = True) -> None:
+        """The submap being mapped as the checkpoint in `path`, with the index (the others are on disk
+        in the submaps' directory: `park` wrote them, and the saves run in order)."""
+        from jaxmap.n3.checkpoint import save_state, save_state_async
+
+        extra = {"submaps": {**self._subs.index(), "dir": os.path.relpath(self._subs.dir, os.path.dirname(
+            os.path.abspath(path)))}}
+        if background:
+            save_state_async(path, self.cfg, self.state, self.timings, copy=copy, extra=extra)
+        else:
+            save_state(path, self.cfg, self.state, self.timings, extra=extra)
+
+
+def submaps_dir(checkpoint_path: str, index: dict) -> str:
+    """The submaps' directory of a checkpoint at `checkpoint_path` (its index names it relative to the
+    checkpoint directory's parent: a run's `submaps/`)."""
+    ckpt = os.path.abspath(checkpoint_path.rstrip("/"))
+    if os.path.basename(ckpt).isdigit():  # one checkpoint `<dir>/<step>` of the checkpoint directory
+        ckpt = os.path.dirname(ckpt)
+    return os.path.normpath(os.path.join(os.path.dirname(ckpt), index.get("dir", "submaps")))
+
+
+def _device_mb() -> float | None:
+    """Device memory in use (MB) where the backend reports it (GPUs), else None."""
+    import jax
+
+    try:
+        stats = jax.devices()[0].memory_stats()
+    except Exception:  # noqa: BLE001 - a backend without memory stats
+        return None
+    return None if not stats else stats.get("bytes_in_use", 0) / 2**20
