@@ -190,3 +190,38 @@ def test_submaps_are_refused_where_they_would_be_ignored():
         load_config("configs/city.yaml", ["submaps.enabled=true", "window.mode=replay"])
     with pytest.raises(ConfigError, match="SubmapMapper"):
         N3Mapper(load_config("configs/city.yaml", SMALL + SUB))
+
+
+def test_frames_uploaded_at_another_submaps_origin_reach_the_map_in_its_frame(tmp_path, monkeypatch):
+    """`jaxmap map` uploads frames ahead (`scan.Uploader`), at the origin of the submap mapped then; a frame
+    that lands in another submap is moved into that one's map frame (`Frame.origin`, `scan_batch.shift`)
+    before its program runs: the batch the grid gets equals the frame uploaded at that submap's origin."""
+    from jaxmap.frame_loop import Frame
+    from jaxmap.n3 import scan
+    from jaxmap.n3.mapper import N3Mapper as Grid
+
+    frames = _frames(14)
+    m = SubmapMapper(load_config("configs/city.yaml", SMALL + SUB), directory=str(tmp_path / "s"),
+                     first_scan=frames[0])
+    upload = scan.Uploader(m.origin, raw=False)  # never follows the submaps: every frame at submap 0's origin
+    got = []
+    real = Grid.submit
+
+    def spy(self, batch, **kw):
+        got.append((jax.tree_util.tree_map(np.asarray, batch), self.origin.copy()))
+        return real(self, batch, **kw)
+
+    monkeypatch.setattr(Grid, "submit", spy)
+    prepared = []
+    for i, (pts, pose) in enumerate(frames):
+        p, nrm, pose, img = scan.preprocess(pts, pose, m.cfg.preprocess, i, image=m.static.evidence)
+        f = upload(Frame(i, i, p, pose, nrm, img))
+        prepared.append(Frame(i, i, p, pose, nrm, img))
+        m.submit(f.batch, points=len(p), pose=f.pose, origin=f.origin)
+    m.finish()
+    origins = {tuple(o) for _, o in got}
+    assert len(origins) >= 2  # frames went to more than one submap
+    for (batch, origin), frame in zip(got, prepared):
+        want = scan.Uploader(origin, raw=False)(frame).batch
+        np.testing.assert_allclose(batch.points, np.asarray(want.points), atol=2e-5)
+        np.testing.assert_allclose(batch.sensor, np.asarray(want.sensor), atol=2e-5)
