@@ -86,22 +86,21 @@ class SubmapMapper(N3Mapper):
             return
         self._settle()
         old_id, old = self._subs.active, self._pipe.state
+        caps = core.Capacities.of(old)
+        self._pipe.state = None
+        self._subs.park(old_id, old)
+        del old  # (its pair store goes now, the rest once written: before the next submap is allocated)
         if target == NEW:
             # An N3 map of its own: a fresh decoder that trains for its first train.freeze_after_frame frames.
             # (The previous submap's decoder, frozen, does not learn new features from zero: with all of a
             # grid's features near zero its ReLUs sit where the trained biases put them, mostly dead, and
             # the features get no gradient; measured: the loss of a new submap stayed at 0.12-0.14.)
-            new = _init_state(self.static, self.cfg, core.Capacities.of(old))
+            new = _init_state(self.static, self.cfg, caps)
             new = new.replace(key=jax.random.fold_in(new.key, len(self._subs.infos)))
             new = core.set_origin(self.static, new, pose[:3, 3])
-            self._pipe.state = None
-            self._subs.park(old_id, old)
             target = self._subs.start(pose[:3, 3])
         else:
-            self._pipe.state = None
-            self._subs.park(old_id, old)
-            new = self._subs.take(target)
-        del old
+            new = self._subs.take(target, caps.store_blocks)
         self._subs.active = target
         self._pipe.state = new
         self._origin = core.origin_world(self.static, new)

@@ -10,10 +10,10 @@ its first `train.freeze_after_frame` frames, as a map's is; a frozen decoder han
 a grid of new features from zero) and an empty pair store: overlap comes from the sensor's range, which
 the submaps on both sides of a switch have seen.
 
-Memory holds the submap being mapped and the `submaps.resident - 1` used last; a submap that is left is
-written at once (in the background) to `<dir>/<id>/<frame>/` as an N3 checkpoint (`n3.checkpoint`; each
-file independent of the others) and dropped from memory when more are resident; it is read back, bit
-for bit, when a query or a loop needs it. The index (`SubmapInfo` per submap: pose, anchor, sensor path,
+Memory holds the submap being mapped and the `submaps.resident - 1` used last (what a query reads of
+them); a submap that is left is written at once (in the background) to `<dir>/<id>/<frame>/` as an N3
+checkpoint without its pair store (`n3.checkpoint`; each file independent of the others) and dropped
+from memory when more are resident; it is read back, bit for bit, when a query or a loop needs it. The index (`SubmapInfo` per submap: pose, anchor, sensor path,
 bounds, checkpoint step) goes into the run's checkpoint.
 
 A submap's pose T_world_local [4, 4] places its frame (the "world" its N3 state was built in: map frame
@@ -37,7 +37,7 @@ import os
 import numpy as np
 
 from jaxmap import hostmem
-from jaxmap.n3 import checkpoint as n3checkpoint
+from jaxmap.n3 import checkpoint as n3checkpoint, window
 from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_world
 from jaxmap.n3.state import N3State, N3Static, origin_world
 from jaxmap.n3.evidence import void as void_of
@@ -113,6 +113,12 @@ def blend_weights(dist: np.ndarray, valid: np.ndarray, band: float) -> np.ndarra
     return np.where(np.isfinite(d) & np.isfinite(dmin), w, 0.0)
 
 
+def query_view(state: N3State) -> N3State:
+    """What a query and the mesh read of a state (hash tables, features, decoder, evidence, origin): without
+    the pair store, the Adam moments and the voxels' corner rows, a third of the memory of the whole."""
+    return state.replace(store=None, pool=None, feature_opt=None, decoder_opt=None, voxel_corner_rows=None)
+
+
 def state_bounds(static: N3Static, state: N3State) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
     """(lo, hi) [3] float64 local-frame box around the state's leaf voxels and their level-`mask_level`
     parents (what a query can find valid), or (None, None) for an empty map."""
@@ -182,21 +188,29 @@ class Submaps:
 
     def park(self, k: int, state: N3State) -> None:
         """Submap k is left (its last frame mapped): its bounds noted, written to disk in the background
-        (from its buffers: nothing changes it now) and kept in memory while the limit allows."""
+        (from its buffers: nothing changes it now) without its pair store, and its query view kept in
+        memory while the limit allows. The store goes at once: it held the window's pairs, and the window
+        (the sensor's range) has moved on to the next submap; a submap taken up again collects new ones.
+        So the memory of a switch is the new submap and the old one's tables until they are written (a
+        third less than both whole), not two whole maps."""
         info = self.infos[k]
         info.lo, info.hi = state_bounds(self.static, state)
         info.step = int(state.frame)
+        st = state.store
+        state = state.replace(store=window.create(1, st.block_size, st.slot_of_voxel.shape[0]))
+        del st
         n3checkpoint.save_state_async(self._path(k), self.cfg, state, [], copy=False)
-        self.states[k] = state
+        self.states[k] = query_view(state)
         self.states.move_to_end(k)
         self._fit(self.limit - 1)
 
-    def take(self, k: int) -> N3State:
-        """The state of submap k, to be mapped again: out of the resident set (the mapper holds it)."""
-        state = self.states.pop(k, None)
-        # its background write may still read its buffers, which the next frame program donates
-        n3checkpoint.wait_for_saves()
-        return state if state is not None else self._read(k)
+    def take(self, k: int, store_blocks: int) -> N3State:
+        """The whole state of submap k, to be mapped again (the mapper holds it), its pair store empty with
+        `store_blocks` blocks (the capacity of the one mapped before it: the same compiled program)."""
+        self.states.pop(k, None)
+        n3checkpoint.wait_for_saves()  # (its file may still be being written)
+        state = self._read(k, full=True)
+        return state.replace(store=window.grow(state.store, n_slots=max(store_blocks, state.store.n_slots)))
 
     # ---- reading -----------------------------------------------------------------------------------
     def state(self, k: int, limit: int | None = None) -> N3State:
@@ -225,13 +239,14 @@ class Submaps:
     def _path(self, k: int) -> str:
         return os.path.join(self.dir, f"{k:04d}")
 
-    def _read(self, k: int) -> N3State:
+    def _read(self, k: int, full: bool = False) -> N3State:
+        """Submap k from its file: the whole state (full), or what a query reads (`query_view`)."""
         info = self.infos[k]
         if info.step < 0:
             raise RuntimeError(f"submap {k} was never written and is not in memory")
         ckpt = os.path.join(self._path(k), str(info.step))
         _, state, _ = n3checkpoint.load_state(ckpt if os.path.isdir(ckpt) else self._path(k))
-        return state
+        return state if full else query_view(state)
 
     def bounds(self, k: int):
         """World box (lo, hi) of submap k (the live one's from its state), None when it holds nothing."""
@@ -301,10 +316,10 @@ class Submaps:
         info = self.infos[k]
         state = self.state(k, limit)
         local = to_local(info.pose, pts_w)
-        s, v = query_world(self.static, state, local)
+        s, v = query_world(self.static, state, local, small_tail=True)
         sdf[idx, j], valid[idx, j] = s, v
         if g is not None:
-            _, gl = query_world(self.static, state, local, grad=True)
+            _, gl = query_world(self.static, state, local, grad=True, small_tail=True)
             g[idx, j] = gl @ np.asarray(info.pose, np.float64)[:3, :3].T
 
     # ---- the mesh ----------------------------------------------------------------------------------
@@ -312,12 +327,12 @@ class Submaps:
         """Marching-cubes mesh of the blended zero level set (trimesh.Trimesh, world frame) on the world
         lattice of `res` (which must divide the leaf voxel size). Each lattice cell is meshed with the
         cells of the submap whose sensor path is nearest to it, one submap after another, each while it and
-        its neighbours are in memory (at most resident + 2 submaps at once); the pieces are welded."""
+        its neighbours are in memory (at most resident + 4 submaps at once); the pieces are welded."""
         from jaxmap.mesh import extract_mesh_groups
 
         static = self.static
         check_mesh_resolution(static.leaf, res)
-        limit = self.limit + 2
+        limit = self.limit + 4  # a submap and its neighbours (query views: ~100 MB each on the city)
         groups: dict[int, list] = collections.defaultdict(list)
         for k in range(len(self.infos)):
             if self.bounds(k) is None:
