@@ -140,7 +140,7 @@ def map(args) -> int:  # noqa: A001 - the command's name
 
 def mesh(args) -> int:
     """`jaxmap mesh RUN [--res R] [--out PATH]`: a mesh of the newest intact checkpoint of a map run."""
-    from jaxmap.n3.mapper import N3Mapper
+    from jaxmap.n3.submap_mapper import load_map
     from jaxmap.n3.run import no_usable_checkpoint
 
     run = args.run
@@ -152,7 +152,7 @@ def mesh(args) -> int:
     if state.command not in (None, "map"):
         raise DataError(f"{run}: holds a jaxmap {state.command} run; jaxmap mesh re-meshes jaxmap map runs")
     try:
-        mapper = N3Mapper.load(os.path.join(run, "checkpoint"))
+        mapper = load_map(os.path.join(run, "checkpoint"))
     except NoCheckpointError:
         raise CheckpointError(f"{run}: no checkpoint yet; map at least `checkpoint_every` frames first "
                               f"(continue the run with: jaxmap map --resume {run})") from None

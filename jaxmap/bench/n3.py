@@ -308,15 +308,24 @@ def _children_peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
 
 
-def main_long(args) -> int:
-    """The long drive: flat per-frame cost and a store bounded by the window."""
-    from jaxmap.bench import base_overrides
+def _print_sizes(frames: list, tot: np.ndarray) -> None:
+    """Per 100 frames: median frame time, the block's last frame's store and map sizes, its largest RSS."""
+    n = len(frames)
+    print(f"\n{'frames':>10}{'median s':>9}{'store pairs':>12}{'store MB':>9}{'window vox':>11}{'leaf voxels':>12}"
+          f"{'feature rows':>13}{'capacity':>9}{'RSS MB':>8}{'peak MB':>8}")
+    for a in range(0, n, 100):
+        r, b = frames[min(a + 99, n - 1)], min(a + 100, n)  # the block's last frame; RSS: the block's largest
+        print(f"{a:>4d}-{b - 1:<5d}{float(np.median(tot[a:b])):>9.3f}{r['store_pairs']:>12d}{r['store_bytes'] / 2**20:>9.1f}"
+              f"{r['window_voxels']:>11d}{r['leaf_voxels']:>12d}{r['feature_rows']:>13d}{r['feature_capacity']:>9d}"
+              f"{max(f['rss_mb'] for f in frames[a:b]):>8.0f}{r['peak_rss_mb']:>8.0f}")
+
+
+def _long_data(args, km: float | None) -> str:
+    """The long drive's directory (`long_data_dir`), synthesized when missing; SystemExit when it holds a
+    drive of another length than --length-km."""
     from jaxmap.synth.city import generate_city
 
-    km = getattr(args, "length_km", None)
     data = long_data_dir(args)
-    out = args.out
-    os.makedirs(out, exist_ok=True)
     if not os.path.isfile(os.path.join(data, "poses.txt")):
         what = "the long drive" if km is None else f"the {km:g} km long drive"
         print(f"[bench] synthesizing {what} into {data}")
@@ -327,6 +336,17 @@ def main_long(args) -> int:
         if have != km:
             raise SystemExit(f"[bench] {data} holds a drive of {'the serpentine' if have is None else f'{have:g} km'}, "
                              f"not {km:g} km; give another --data (or delete it to synthesize it again)")
+    return data
+
+
+def main_long(args) -> int:
+    """The long drive: flat per-frame cost and a store bounded by the window."""
+    from jaxmap.bench import base_overrides
+
+    km = getattr(args, "length_km", None)
+    data = _long_data(args, km)
+    out = args.out
+    os.makedirs(out, exist_ok=True)
     base = base_overrides(args, data)[1:] + ["checkpoint_every=100000"]
     cache = os.path.join(out, "xla_cache")
     print(f"[bench] long drive: jaxmap map on {data}" + (f" (--set {' --set '.join(args.overrides)})"
@@ -343,13 +363,7 @@ def main_long(args) -> int:
           f"{s.get('compile_s', float('nan')):.1f} s in {s.get('compiles', -1)} compiles), peak RSS "
           f"{s.get('peak_rss_mapping_mb', float('nan')):.0f} MB")
     print(f"median s/frame, frames 100-200: {ma:.3f}; frames 900-1000: {mb:.3f}; ratio {mb / ma:.3f}")
-    print(f"\n{'frames':>10}{'median s':>9}{'store pairs':>12}{'store MB':>9}{'window vox':>11}{'leaf voxels':>12}"
-          f"{'feature rows':>13}{'capacity':>9}{'RSS MB':>8}{'peak MB':>8}")
-    for a in range(0, n, 100):
-        r, b = frames[min(a + 99, n - 1)], min(a + 100, n)  # the block's last frame; RSS: the block's largest
-        print(f"{a:>4d}-{b - 1:<5d}{float(np.median(tot[a:b])):>9.3f}{r['store_pairs']:>12d}{r['store_bytes'] / 2**20:>9.1f}"
-              f"{r['window_voxels']:>11d}{r['leaf_voxels']:>12d}{r['feature_rows']:>13d}{r['feature_capacity']:>9d}"
-              f"{max(f['rss_mb'] for f in frames[a:b]):>8.0f}{r['peak_rss_mb']:>8.0f}")
+    _print_sizes(frames, tot)
     pairs = [r["store_pairs"] for r in frames]
     flat, ratio = store_flat_after_full(pairs)
     print(f"store flat once the window is full: {flat} (last half / first half max = {ratio:.2f})")

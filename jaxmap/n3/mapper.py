@@ -26,7 +26,7 @@ from jaxmap.viewer import copy_arrays
 
 _forget_jit = jax.jit(window.forget_frames)
 # The empty map as one program: built op by op, it compiled some fifty small programs each run (~4 s).
-_init_state = jax.jit(core.init_state, static_argnums=(0, 1, 2))
+empty_state = jax.jit(core.init_state, static_argnums=(0, 1, 2))
 
 
 class N3Mapper:
@@ -57,7 +57,7 @@ class N3Mapper:
                 self._precompile(caps, first_frame.batch)
             elif first_scan is not None:
                 self._precompile(caps, self._first_batch(*first_scan))
-            state = _init_state(self.static, self.cfg, caps)
+            state = empty_state(self.static, self.cfg, caps)
             hostmem.trim()  # the initialisation's temporaries
         self.timings = list(timings or [])
         if self.timings:  # a resumed map pads its scans as the run did (the padding decides the samples)
@@ -101,11 +101,14 @@ class N3Mapper:
 
     def _precompile(self, caps: core.Capacities, batch) -> None:
         """Compile the first frame's program from the shapes alone (`core.compiled_step` keeps it)."""
-        abstract = jax.eval_shape(lambda: _init_state(self.static, self.cfg, caps))
+        abstract = jax.eval_shape(lambda: empty_state(self.static, self.cfg, caps))
         self._bucket = batch.points.shape[0]
         if self.static.preprocess is not None:
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         core.compiled_step(self.static, abstract, batch, self._headroom.get("scan_rows", 0))
+
+    def follow(self, uploader) -> None:
+        """The frame loop's `scan.Uploader` (one grid keeps its origin: nothing to follow; `SubmapMapper`)."""
 
     def fix_layout(self, points_s) -> None:
         """Read the range-image layout off the first scan when the config leaves it open (an empty map is
@@ -117,7 +120,7 @@ class N3Mapper:
         self._pipe.static = self.static
         caps = core.Capacities.of(self.state)
         self.state = None
-        self.state = _init_state(self.static, self.cfg, caps)
+        self.state = empty_state(self.static, self.cfg, caps)
 
     def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
         """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
@@ -217,7 +220,7 @@ class N3Mapper:
         reused), frame 0, the origin set again by the next frame. The timings are kept."""
         caps = core.Capacities.of(self.state)
         self.state = None  # the old arrays go before the new ones are allocated
-        self.state = _init_state(self.static, self.cfg, caps)
+        self.state = empty_state(self.static, self.cfg, caps)
         self.frames = 0
         self._origin = core.origin_world(self.static, self.state)
 
@@ -321,16 +324,14 @@ class N3Mapper:
 
     @classmethod
     def load(cls, path: str) -> "N3Mapper":
-        """The map of checkpoint directory `path` (or one checkpoint `path/<step>`): an N3Mapper, or a
-        `SubmapMapper` where the checkpoint holds a map of submaps."""
+        """The one-grid map of checkpoint directory `path` (or one checkpoint `path/<step>`); a map of
+        submaps opens with `jaxmap.n3.submap_mapper.load_map` (which opens either)."""
+        from jaxmap.errors import CheckpointError
         from jaxmap.n3.checkpoint import load_state_meta
 
         cfg, state, timings, meta = load_state_meta(path)
         if "submaps" in meta:
-            from jaxmap.n3.submap_mapper import SubmapMapper, submaps_dir
-
-            return SubmapMapper(cfg, state, timings, directory=submaps_dir(path, meta["submaps"]),
-                                index=meta["submaps"])
+            raise CheckpointError(f"{path} holds a map of submaps: open it with jaxmap.n3.submap_mapper.load_map")
         return cls(cfg, state, timings)
 
 

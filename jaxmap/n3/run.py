@@ -35,6 +35,7 @@ from jaxmap.metrics import dynamic
 from jaxmap.n3 import checkpoint, scan
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.n3.mapper import N3Mapper, origin_at
+from jaxmap.n3.submap_mapper import SubmapMapper, load_map
 from jaxmap.preprocess_device import resolve
 
 log = logging.getLogger("jaxmap")
@@ -46,9 +47,9 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
 
     Frames are read, preprocessed and uploaded ahead in background threads (`frame_loop.Prefetcher`,
     from the start, while the frame program compiles), and each frame's program is dispatched before
-    the previous one's statistics are read (`MapSteps`), so the device maps frame after frame while the
-    host prepares the next ones and keeps the books. `wall_s` in the summary is
-    the wall-clock time of the mapping loop, compilation and checkpoints included: what a user waits.
+    the previous one's statistics are read (`MapSteps`), so the device maps frame after frame while the host
+    prepares the next ones and keeps the books. `wall_s` in the summary is the wall-clock time of the
+    mapping loop, compilation and checkpoints included: what a user waits.
     resume: continue from the newest intact checkpoint in out_dir (`resume_mapper`). Ctrl-C and SIGTERM
     (in the main thread) stop the loop after the frame being mapped, save a checkpoint and re-raise
     (`jaxmap.rundir.Interrupted`). The caller owns out_dir (`jaxmap.rundir.claim` in the CLI).
@@ -56,9 +57,7 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     os.makedirs(out_dir, exist_ok=True)
     cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))  # device: auto decided (config.yaml says which)
     device = cfg.preprocess.device == "true"
-    ckpt = os.path.join(out_dir, "checkpoint")
-    t_start = time.perf_counter()
-    n_compiles = len(COMPILE_SECONDS)
+    ckpt, t_start, n_compiles = os.path.join(out_dir, "checkpoint"), time.perf_counter(), len(COMPILE_SECONDS)
     seq = open_run_sequence(cfg)
     labeller = dynamic.labeller_for(cfg.data.path)
     scores = dynamic.PointScores() if labeller is not None else None
@@ -86,9 +85,7 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
             frames.close()
             raise
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
-    start = mapper.frames
-    if hasattr(mapper, "follow"):  # a map of submaps moves the uploads' origin to the submap it maps into
-        mapper.follow(uploader)
+    mapper.follow(uploader)  # (a map of submaps moves the uploads' origin to the submap it maps into)
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
                         every=max(cfg.checkpoint_every, 1), busy=checkpoint.saving, wait=checkpoint.wait_for_saves,
@@ -96,8 +93,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                         final=lambda: mapper.save(ckpt, background=True, copy=False))
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    loop = run_frames(frames, MapSteps(mapper, scores), total=len(seq), start=start, progress=bar, viewer=viewer,
-                      checkpoints=saves, t_start=t_start)
+    loop = run_frames(frames, MapSteps(mapper, scores), total=len(seq), start=mapper.frames, progress=bar,
+                      viewer=viewer, checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
@@ -109,8 +106,6 @@ def new_mapper(cfg: MapConfig, run_dir: str, **kw) -> N3Mapper:
     """The empty map of a run of `cfg` in `run_dir`: one grid (N3Mapper), or with submaps.enabled a
     SubmapMapper writing its submaps to run_dir/submaps. kw: N3Mapper's (first_frame, first_scan)."""
     if cfg.submaps.enabled:
-        from jaxmap.n3.submap_mapper import SubmapMapper
-
         return SubmapMapper(cfg, directory=os.path.join(run_dir, "submaps"), **kw)
     return N3Mapper(cfg, **kw)
 
@@ -206,7 +201,7 @@ def resume_mapper(run_dir: str, cfg: MapConfig):
     one. CheckpointError when every checkpoint is damaged, or when the checkpoint's config is not
     `cfg` (the run's config.yaml): then the directory mixes two runs."""
     try:
-        mapper = N3Mapper.load(os.path.join(run_dir, "checkpoint"))
+        mapper = load_map(os.path.join(run_dir, "checkpoint"))
     except NoCheckpointError:
         log.warning("%s: no checkpoint yet (the run stopped before its first one, saved every %d frames): "
                     "mapping again from frame 0", run_dir, cfg.checkpoint_every)

@@ -1,6 +1,6 @@
 """`SubmapMapper`: the N3 mapper over a chain of submaps (`submaps.enabled`; `jaxmap.n3.submaps`).
 
-    m = SubmapMapper(cfg, directory="runs/x/submaps")   # or N3Mapper.load(...) of such a run
+    m = SubmapMapper(cfg, directory="runs/x/submaps")   # or load_map("runs/x/checkpoint") of such a run
     m.add_frame(points_s, pose)            # maps into the submap the pose falls in (a new one, or an old one again)
     sdf, valid = m.sdf(points_w)           # blended over the submaps that hold the points
     mesh = m.mesh()                        # streamed through the mesher one submap at a time
@@ -20,14 +20,14 @@ import numpy as np
 
 from jaxmap import hostmem
 from jaxmap.n3 import core
-from jaxmap.n3.mapper import N3Mapper, _init_state
+from jaxmap.n3.mapper import N3Mapper, empty_state
 from jaxmap.n3.scan_batch import shift
 from jaxmap.n3.submaps import NEW, Submaps
 
 
 class SubmapMapper(N3Mapper):
     """An N3Mapper over a chain of submaps. directory: where the submaps are written (a run's
-    `submaps/`; default a new temporary folder); index: a checkpoint's submap index (`N3Mapper.load`)."""
+    `submaps/`; default a new temporary folder); index: a checkpoint's submap index (`load_map`)."""
 
     def __init__(self, cfg=None, state=None, timings=None, first_scan=None, first_frame=None, *,
                  directory: str | None = None, index: dict | None = None):
@@ -95,7 +95,7 @@ class SubmapMapper(N3Mapper):
             # (The previous submap's decoder, frozen, does not learn new features from zero: with all of a
             # grid's features near zero its ReLUs sit where the trained biases put them, mostly dead, and
             # the features get no gradient; measured: the loss of a new submap stayed at 0.12-0.14.)
-            new = _init_state(self.static, self.cfg, caps)
+            new = empty_state(self.static, self.cfg, caps)
             new = new.replace(key=jax.random.fold_in(new.key, len(self._subs.infos)))
             new = core.set_origin(self.static, new, pose[:3, 3])
             target = self._subs.start(pose[:3, 3])
@@ -185,6 +185,17 @@ class SubmapMapper(N3Mapper):
             save_state_async(path, self.cfg, self.state, self.timings, copy=copy, extra=extra)
         else:
             save_state(path, self.cfg, self.state, self.timings, extra=extra)
+
+
+def load_map(path: str) -> N3Mapper:
+    """The map of checkpoint directory `path` (or one checkpoint `path/<step>`): an N3Mapper, or a
+    SubmapMapper where the checkpoint holds a map of submaps (its submaps read from the run's submaps/)."""
+    from jaxmap.n3.checkpoint import load_state_meta
+
+    cfg, state, timings, meta = load_state_meta(path)
+    if "submaps" in meta:
+        return SubmapMapper(cfg, state, timings, directory=submaps_dir(path, meta["submaps"]), index=meta["submaps"])
+    return N3Mapper(cfg, state, timings)
 
 
 def submaps_dir(checkpoint_path: str, index: dict) -> str:

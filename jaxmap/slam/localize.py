@@ -69,14 +69,15 @@ def read_init(text: str) -> np.ndarray:
 
 
 def open_map(path: str):
-    """The N3Mapper of a `jaxmap map` run directory (its checkpoint/) or of a checkpoint directory."""
-    from jaxmap.n3.mapper import N3Mapper
+    """The map (N3Mapper, or SubmapMapper for a map of submaps) of a `jaxmap map` run directory (its
+    checkpoint/) or of a checkpoint directory."""
+    from jaxmap.n3.submap_mapper import load_map
 
     if not os.path.isdir(path):
         raise DataError(f"{path}: not a directory; pass the run directory of a jaxmap map run (its --out)")
     ckpt = os.path.join(path, "checkpoint")
     try:
-        return N3Mapper.load(ckpt if os.path.isdir(ckpt) else path)
+        return load_map(ckpt if os.path.isdir(ckpt) else path)
     except NoCheckpointError:
         raise DataError(f"{path}: no N3 map checkpoint; pass the --out of a finished jaxmap map run") from None
     except CheckpointError as e:
