@@ -163,9 +163,7 @@ class SubmapMapper(N3Mapper):
             out.append(np.asarray(st.voxel_coord[:n])[void] + np.asarray(st.origin_vox))
         return np.concatenate(out).astype(np.int32) if out else np.zeros((0, 3), np.int32)
 
-    def live_mesh(self) -> dict:
-        """The live view meshes the submap being mapped."""
-        return super().live_mesh()
+    # (the live view, `live_mesh`, meshes the submap being mapped)
 
     def forget_frames(self, frames) -> int:
         raise NotImplementedError("a map of submaps does not forget frames (jaxmap slam maps one grid)")

@@ -13,8 +13,9 @@ the submaps on both sides of a switch have seen.
 Memory holds the submap being mapped and the `submaps.resident - 1` used last (what a query reads of
 them); a submap that is left is written at once (in the background) to `<dir>/<id>/<frame>/` as an N3
 checkpoint without its pair store (`n3.checkpoint`; each file independent of the others) and dropped
-from memory when more are resident; it is read back, bit for bit, when a query or a loop needs it. The index (`SubmapInfo` per submap: pose, anchor, sensor path,
-bounds, checkpoint step) goes into the run's checkpoint.
+from memory when more are resident; it is read back, bit for bit, when a query or a loop needs it. The
+index (`SubmapInfo` per submap: pose, anchor, sensor path, bounds, checkpoint step) goes into the run's
+checkpoint.
 
 A submap's pose T_world_local [4, 4] places its frame (the "world" its N3 state was built in: map frame
 plus origin) in the world; it is the identity until a pose graph moves the submap as a rigid body.
@@ -31,7 +32,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import logging
 import os
 
 import numpy as np
@@ -41,8 +41,6 @@ from jaxmap.n3 import checkpoint as n3checkpoint, window
 from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_world
 from jaxmap.n3.state import N3State, N3Static, origin_world
 from jaxmap.n3.evidence import void as void_of
-
-log = logging.getLogger("jaxmap")
 
 NEW = -1  # `Submaps.switch_for`: start a new submap
 
@@ -62,7 +60,8 @@ class SubmapInfo:
 
     def to_json(self) -> dict:
         f = lambda a: None if a is None else np.asarray(a, np.float64).tolist()  # noqa: E731
-        return {"id": self.id, "anchor": f(self.anchor), "pose": f(self.pose), "path": f(np.reshape(self.path, (-1, 3))),
+        return {"id": self.id, "anchor": f(self.anchor), "pose": f(self.pose),
+                "path": f(np.reshape(self.path, (-1, 3))),
                 "frames": [int(i) for i in self.frames], "lo": f(self.lo), "hi": f(self.hi), "step": int(self.step)}
 
     @classmethod
@@ -148,7 +147,7 @@ class Submaps:
 
     # ---- the index ---------------------------------------------------------------------------------
     def index(self) -> dict:
-        """The index as JSON (the run's checkpoint holds it); `dir` relative to `base` when given."""
+        """The index as JSON (the run's checkpoint holds it, with the submaps' folder: `SubmapMapper.save`)."""
         return {"active": self.active, "submaps": [i.to_json() for i in self.infos]}
 
     def restore(self, index: dict) -> None:
