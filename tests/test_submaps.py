@@ -169,9 +169,12 @@ def test_a_map_of_submaps_saved_and_loaded_goes_on_as_if_never_stopped(tmp_path)
     with pytest.raises(CheckpointError, match="load_map"):  # one grid's loader says where to go
         N3Mapper.load(str(tmp_path / "b" / "checkpoint"))
     assert isinstance(c, SubmapMapper) and len(c.submaps.infos) == len(b.submaps.infos)
+    assert c.frames == 11 and c.bucket == b.bucket  # the whole map's frames, not the active submap's
     for pts, pose in frames[11:]:
         c.add_frame(pts, pose)
     assert len(c.submaps.infos) == len(a.submaps.infos)
+    assert [r["frame"] for r in c.timings] == list(range(16))
+    assert [i.frames for i in c.submaps.infos] == [i.frames for i in a.submaps.infos]
     q = np.stack([np.linspace(0, 15, 200), np.full(200, -5.9), np.full(200, 0.8)], 1)
     np.testing.assert_array_equal(c.sdf(q)[0], a.sdf(q)[0])
 

@@ -38,6 +38,8 @@ class SubmapMapper(N3Mapper):
         first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
         if index is not None:
             self._subs.restore(index)
+            # the frames of the whole map (the state's count is the active submap's own)
+            self.frames = int(index.get("frames", sum(len(i.frames) for i in self._subs.infos)))
         elif self.frames == 0 and first_pose is not None:
             self._subs.active = self._subs.start(np.asarray(first_pose, np.float64)[:3, 3])
 
@@ -177,7 +179,7 @@ class SubmapMapper(N3Mapper):
         in the submaps' directory: `park` wrote them, and the saves run in order)."""
         from jaxmap.n3.checkpoint import save_state, save_state_async
 
-        extra = {"submaps": {**self._subs.index(), "dir": os.path.relpath(self._subs.dir, os.path.dirname(
+        extra = {"submaps": {**self._subs.index(), "frames": self.frames, "dir": os.path.relpath(self._subs.dir, os.path.dirname(
             os.path.abspath(path)))}}
         if background:
             save_state_async(path, self.cfg, self.state, self.timings, copy=copy, extra=extra)
