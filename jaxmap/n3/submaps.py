@@ -294,7 +294,9 @@ class Submaps:
         valid = np.zeros((n, c), bool)
         g = np.zeros((n, c, 3), np.float32) if grad else None
         near = dist <= dist.min(axis=1, keepdims=True) + band
-        for read in (near, ~near & ~np.any(valid, axis=1, keepdims=True)):
+        for second in (False, True):
+            # the second pass only where the first found no valid reading (evaluated after the first)
+            read = ~near & ~np.any(valid, axis=1, keepdims=True) if second else near
             for j, k in enumerate(cands):
                 idx = np.nonzero(read[:, j] & np.isfinite(dist[:, j]))[0]
                 if len(idx):
