@@ -147,6 +147,10 @@ class SubmapsConfig:
     blend_m: float = 4.0             # a query reads every submap that holds it within this of the nearest
                                      # one (distance to the submaps' sensor paths), weights falling linearly to 0
     resident: int = 1                # submaps held in memory at once, the one mapped included (the rest on disk)
+    revisit: bool = True             # a drive back takes up the earlier submap there; false: a new submap once
+                                     # the sensor has driven length_m in the current one, so every pass maps into
+                                     # submaps of its own, blended (jaxmap slam's: a loop correction moves them
+                                     # apart as rigid bodies)
 
 
 @dataclass(frozen=True)

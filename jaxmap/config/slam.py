@@ -10,7 +10,7 @@ from jaxmap.config.schema import (DataConfig, EvalConfig, ImtConfig, LatentMapCo
 ODOMETRY_METHODS = ("icp", "kiss_icp")
 EDGE_INFORMATION = ("isotropic", "icp")
 MAP_KINDS = ("imt", "n3")
-N3_LOOP_MODES = ("rebuild", "moved", "none")
+N3_LOOP_MODES = ("submaps", "rebuild", "moved", "none")
 
 
 @dataclass(frozen=True)
@@ -189,11 +189,16 @@ class SlamConfig:
     n3_track_min_valid: float = 0.93  # n3: adopt a tracked pose only when this fraction of the scan's points lies in
                                       # the map (a scan mostly beyond the map's edge tracks biased: docs/slam.md)
     n3_track_max_range_m: float = 0.0  # n3: track with the scan's points within this range only (0 = all)
-    n3_loop: str = "moved"            # n3: how the map follows a loop correction: rebuild (every frame again at
-                                      # the optimised poses), moved (re-add the frames that moved, their old
-                                      # training pairs removed), none (docs/slam.md)
+    n3_loop: str = "moved"            # n3: how the map follows a loop correction: submaps (the map is a chain of
+                                      # submaps of n3_submap_m, each pass its own; a loop moves each as a rigid
+                                      # body), rebuild (one grid, every frame again at the optimised poses),
+                                      # moved (one grid, re-add the frames that moved, their old training pairs
+                                      # removed), none (docs/slam.md)
     n3_loop_min_move_m: float = 0.02  # n3: a loop that moves no frame's position more than this leaves the map
-                                      # as it is; n3_loop moved re-adds the frames that moved more
+                                      # as it is; moved re-adds the frames that moved more; submaps re-adds the
+                                      # frames of the submap being mapped that moved more than this against it
+    n3_submap_m: float = 30.0         # n3_loop submaps: a new submap once the sensor has driven this far in the
+                                      # current one (the N3 map's submaps.length_m, with submaps.revisit false)
     output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
 

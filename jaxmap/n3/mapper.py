@@ -229,10 +229,14 @@ class N3Mapper:
         added them since the start or the last `reset`), e.g. before adding them again at corrected
         poses; the features they trained stay until training moves them. Returns the pairs removed
         (0 for the replay / keyframe ablations, whose flat pool is left as it is)."""
-        frames = [int(f) for f in frames if 0 <= int(f) < self.frames]
+        return self._forget(frames, self.frames)
+
+    def _forget(self, frames, count: int) -> int:
+        """`forget_frames` of a state that has mapped `count` frames."""
+        frames = [int(f) for f in frames if 0 <= int(f) < count]
         if self.static.uses_pool or not frames:
             return 0
-        drop = np.zeros(pow2(self.frames), bool)
+        drop = np.zeros(pow2(count), bool)
         drop[frames] = True
         store, removed = _forget_jit(self.state.store, drop)
         self.state = self.state.replace(store=store)
@@ -272,9 +276,10 @@ class N3Mapper:
         """[3] float64 world position of the map frame."""
         return self._origin
 
-    def tracking_map(self, position_w) -> tuple[core.N3Static, core.N3State, np.ndarray]:
+    def tracking_map(self, position_w, min_frames: int = 1) -> tuple[core.N3Static, core.N3State, np.ndarray]:
         """(static, state, T_world_local [4, 4]) of the map a scan near world position_w [3] is tracked
-        against (`jaxmap localize`): the whole map, in the world frame (a map of submaps: the nearest)."""
+        against (`jaxmap localize`, `jaxmap slam`): the whole map, in the world frame (a map of submaps:
+        the nearest of at least min_frames frames)."""
         return self.static, self.state, np.eye(4)
 
     def sdf(self, points_w) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,8 @@ class SubmapMapper(N3Mapper):
                  directory: str | None = None, index: dict | None = None):
         self._subs, self._uploader, self._next_pose = None, None, None
         super().__init__(cfg, state, timings, first_scan=first_scan, first_frame=first_frame)
+        self._local = self.frames          # frames submitted to the active submap's state (its own count)
+        self._local_of: dict[int, int] = {}  # frame (the whole map's count) -> its count in its submap
         self._subs = Submaps(self.static, self.cfg, directory or tempfile.mkdtemp(prefix="jaxmap-submaps-"),
                              live=lambda: self.state)
         first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
@@ -60,11 +62,18 @@ class SubmapMapper(N3Mapper):
         super().fix_layout(points_s)
         self._subs.static, self._subs.cfg = self.static, self.cfg  # the submaps are written with the layout
 
-    def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
-        if self.frames:
-            self._enter(np.asarray(pose, np.float64))
-        self._next_pose = np.asarray(pose, np.float64)  # for `submit`, which `N3Mapper.add_frame` calls
-        return super().add_frame(points_s, pose, prepared)
+    def add_frame(self, points_s, pose, prepared: tuple | None = None, stay: bool = False) -> dict:
+        """`N3Mapper.add_frame` with pose [4, 4] T_world_sensor (or prepared's) in the world: mapped into
+        the submap the pose falls in (stay: the active one, e.g. a frame of it added again), at the pose in
+        that submap's frame (a moved submap's, not the world's)."""
+        pose = np.asarray(prepared[2] if pose is None else pose, np.float64)
+        if self.frames and not stay:
+            self._enter(pose)
+        self._next_pose = pose  # for `submit`, which `N3Mapper.add_frame` calls
+        local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
+        if prepared is not None:
+            prepared = (prepared[0], prepared[1], local, *prepared[3:])
+        return super().add_frame(points_s, local, prepared)
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
                pose=None, origin=None) -> list:
@@ -76,9 +85,14 @@ class SubmapMapper(N3Mapper):
             self._enter(np.asarray(pose, np.float64))
         if pose is None:
             raise ValueError("SubmapMapper.submit needs the frame's pose (pose=T_world_sensor)")
+        if origin is not None and not np.array_equal(self._subs.infos[self._subs.active].pose, np.eye(4)):
+            raise ValueError("a batch uploaded in the world frame cannot go into a moved submap: map it with "
+                             "add_frame (which places the pose in the submap's frame)")
         if origin is not None and not np.array_equal(np.asarray(origin, np.float64), self._origin):
             batch = shift(batch, (np.asarray(origin, np.float64) - self._origin).astype(np.float32))
         self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames)
+        self._local_of[self.frames] = self._local
+        self._local += 1
         return super().submit(batch, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s)
 
     def _enter(self, pose: np.ndarray) -> None:
@@ -101,8 +115,10 @@ class SubmapMapper(N3Mapper):
             new = new.replace(key=jax.random.fold_in(new.key, len(self._subs.infos)))
             new = core.set_origin(self.static, new, pose[:3, 3])
             target = self._subs.start(pose[:3, 3])
+            self._local = 0
         else:
             new = self._subs.take(target, caps.store_blocks)
+            self._local = int(new.frame)
         self._subs.active = target
         self._pipe.state = new
         self._origin = core.origin_world(self.static, new)
@@ -116,7 +132,8 @@ class SubmapMapper(N3Mapper):
         if self._subs is None:
             return
         for r in self.timings[n:]:
-            r.update({"submap": self._subs.active, "submaps": len(self._subs.infos),
+            r.update({"submap": self._subs.active, "submap_frame": self._local_of.pop(r["frame"], None),
+                      "submaps": len(self._subs.infos),
                       "submaps_resident": self._subs.resident(), "submaps_on_disk": self._subs.on_disk(),
                       "device_mb": _device_mb()})
 
@@ -137,14 +154,27 @@ class SubmapMapper(N3Mapper):
         self._settle()
         return self._subs.mesh(float(res or self.cfg.mesh.resolution_m), mcf)
 
-    def tracking_map(self, position_w):
+    def tracking_map(self, position_w, min_frames: int = 1):
         """(static, state, T_world_local) of the submap whose sensor path passes nearest to world
-        position_w [3]: a scan is tracked against one submap (it holds the sensor's range around its path)."""
+        position_w [3]: a scan is tracked against one submap (it holds the sensor's range around its path).
+        min_frames: only submaps of at least this many frames (a young one holds little: the one before
+        it is tracked against), unless none has as many."""
         p = np.asarray(position_w, np.float64).reshape(1, 3)
-        d = [self._subs.path_distance(k, p)[0] if self._subs.infos[k].path else np.inf
-             for k in range(len(self._subs.infos))]
+        infos = self._subs.infos
+        d = np.array([self._subs.path_distance(k, p)[0] if infos[k].path else np.inf for k in range(len(infos))])
+        grown = np.array([len(i.frames) >= min_frames for i in infos])
+        if grown.any():
+            d = np.where(grown, d, np.inf)
         k = int(np.argmin(d))
-        return self.static, self._subs.state(k), self._subs.infos[k].pose
+        return self.static, self._subs.state(k), infos[k].pose
+
+    def move_submaps(self, poses: dict) -> None:
+        """Place each submap k of `poses` {k: T_world_local [4, 4]} there, as a rigid body (a loop
+        correction of `jaxmap slam`); the frames mapped next into the active one go in at their pose
+        in its new frame."""
+        self._settle()
+        for k, T in poses.items():
+            self._subs.move(int(k), T)
 
     def voxel_coords(self, points_s, pose) -> np.ndarray:
         """[M, 3] int64 world leaf voxels (origin 0: one lattice for every submap) of sensor-frame points."""
@@ -168,7 +198,9 @@ class SubmapMapper(N3Mapper):
     # (the live view, `live_mesh`, meshes the submap being mapped)
 
     def forget_frames(self, frames) -> int:
-        raise NotImplementedError("a map of submaps does not forget frames (jaxmap slam maps one grid)")
+        """`N3Mapper.forget_frames` in the active submap: frames are counted in it (records'
+        `submap_frame`); the other submaps keep no pair store to remove pairs from."""
+        return self._forget(frames, self._local)
 
     def reset(self) -> None:
         raise NotImplementedError("a map of submaps is not reset (jaxmap slam maps one grid)")

@@ -169,15 +169,27 @@ class Submaps:
 
     def switch_for(self, position_w: np.ndarray) -> int | None:
         """Where the frame at sensor position_w [3] (world) is mapped: None = the active submap; NEW = a
-        new one; an id = that earlier submap, whose anchor is the nearest and within half of length_m."""
+        new one; an id = that earlier submap, whose anchor is the nearest and within half of length_m.
+        With `submaps.revisit` false, a new one once the sensor has driven length_m in the active one."""
         length = float(self.cfg.submaps.length_m)
         act = self.infos[self.active]
-        if np.linalg.norm(to_local(act.pose, position_w[None])[0] - act.anchor) <= length:
+        here = to_local(act.pose, position_w[None])[0]
+        if not self.cfg.submaps.revisit:
+            # each pass its own: the length is the path driven in the submap (a drive around a block
+            # never leaves a radius of length_m; its return must be another submap to be moved apart)
+            path = np.reshape(np.asarray([*act.path, here], np.float64), (-1, 3))
+            return None if np.linalg.norm(np.diff(path, axis=0), axis=1).sum() <= length else NEW
+        if np.linalg.norm(here - act.anchor) <= length:
             return None
         d = np.array([np.linalg.norm(to_world(i.pose, i.anchor[None])[0] - position_w) for i in self.infos])
         d[self.active] = np.inf
         k = int(np.argmin(d))
         return k if d[k] <= 0.5 * length else NEW
+
+    def move(self, k: int, pose: np.ndarray) -> None:
+        """Place submap k at pose T_world_local [4, 4] (a pose graph moved it as a rigid body): its
+        features are untouched, every reading of it (queries, mesh, paths, anchor) follows the pose."""
+        self.infos[k].pose = np.asarray(pose, np.float64).copy()
 
     def record(self, position_w: np.ndarray, frame: int) -> None:
         """The active submap maps the frame at sensor position_w [3] (world)."""

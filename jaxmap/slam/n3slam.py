@@ -10,7 +10,12 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
      pose is kept;
   3. the frame goes into the N3 map at that pose (`N3Mapper.add_frame`, the frame program of `jaxmap map`);
   4. when a loop is accepted and the pose graph moves the frames, the map follows (`n3_loop`):
-     `rebuild` empties the map and integrates every frame so far again at its optimised pose (when
+     `submaps`: the map is a chain of submaps (`SubmapMapper`, a new one every `n3_submap_m`, each pass
+     through a street its own), and each submap is moved as a rigid body to the pose that fits its frames'
+     corrections best (`submap_poses`: no re-training; the passes of a loop are blended, not trained into
+     one grid); the frames of the submap being mapped that still moved against it by more than
+     `n3_loop_min_move_m` are re-added, one after each of the next frames (in the background of the loop,
+     not all at once); `rebuild` empties the map and integrates every frame so far again at its optimised pose (when
      any frame moved more than `n3_loop_min_move_m`); `moved` removes the stored training pairs of
      the frames whose position moved more than that (`N3Mapper.forget_frames`) and adds those frames
      again, into the map as it is; `none` leaves the map as mapped (an ablation). docs/slam.md has the
@@ -27,16 +32,20 @@ import time
 
 import numpy as np
 
-from jaxmap.config import MapConfig, SlamConfig, load_config
+from jaxmap.config import MapConfig, SlamConfig, load_config, validate
 from jaxmap.errors import JaxmapError
 from jaxmap.frame_loop import Frame, Prefetcher, Progress, medians, run_frames
-from jaxmap.geometry import compose
+from jaxmap.geometry import compose, orthonormalize
 from jaxmap.n3 import scan
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
 
 log = logging.getLogger("jaxmap")
+
+# n3_loop submaps: a scan is tracked against a submap of at least this many frames (a new one holds
+# little: the one before it, whose range covers the sensor, is tracked against while it grows)
+TRACK_MIN_FRAMES = 10
 
 
 def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
@@ -85,6 +94,19 @@ def pose_moved(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(np.asarray(a)[:3, 3] - np.asarray(b)[:3, 3]))
 
 
+def submap_pose(world: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """T_world_local [4, 4] of the rigid body that best carries a submap's frames from their poses in its
+    frame, local [K, 4, 4], to their (optimised) world poses world [K, 4, 4]: the rotation is the chordal
+    mean of the frames' R_world R_local^T, the translation the mean of t_world - R t_local (least squares
+    for that rotation). With one frame, or a correction that is rigid over the submap, it is exact."""
+    world, local = np.asarray(world, np.float64), np.asarray(local, np.float64)
+    M = np.einsum("kij,klj->il", world[:, :3, :3], local[:, :3, :3])   # sum_k R_w,k R_l,k^T
+    T = np.eye(4)
+    T[:3, :3] = orthonormalize(M)
+    T[:3, 3] = np.mean(world[:, :3, 3] - local[:, :3, 3] @ T[:3, :3].T, axis=0)
+    return T
+
+
 class N3SlamStep:
     """The frame-loop step of `map_kind: n3` (see the module docstring).
     track: fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
@@ -94,8 +116,11 @@ class N3SlamStep:
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
         self.prepared: list[tuple] = []          # per frame: (points, normals) sensor frame
         self.images: list = []                   # per frame: its range image (None: evidence off)
-        self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at
-        self.counter: list[int] = []             # per frame: its number in the map (`N3Mapper.frames` as added)
+        self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at (in its
+                                                 # submap's frame with n3_loop submaps, else the world's)
+        self.counter: list[int] = []             # per frame: its number in its map (pairs carry it)
+        self.submap: list[int] = []              # per frame: its submap (0: one grid)
+        self.pending: list[int] = []             # n3_loop submaps: frames to re-add, one after each frame
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
         self.loops: list[dict] = []
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
@@ -108,10 +133,12 @@ class N3SlamStep:
             return None
 
         def refine(guess: np.ndarray):
-            r = self.track(self.mapper.static, self.mapper.state, points, guess)
+            # one grid: the map; submaps: the one whose path passes nearest, of TRACK_MIN_FRAMES at least
+            static, state, T = self.mapper.tracking_map(guess[:3, 3], min_frames=TRACK_MIN_FRAMES)
+            r = self.track(static, state, points, np.linalg.inv(T) @ guess)
             self.tracks.append({"tracked": True, "ok": bool(r.ok), "valid_fraction": float(r.valid_fraction),
                                 "rms_m": float(r.rms_m), "iterations": int(r.iterations)})
-            return np.asarray(r.pose, np.float64) if r.ok else None
+            return T @ np.asarray(r.pose, np.float64) if r.ok else None
 
         return refine
 
@@ -125,15 +152,18 @@ class N3SlamStep:
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
             self.prepared.append(frame.prepared)
             self.images.append(frame.image)
-            self.mapped_at.append(r.pose.copy())
-            self.counter.append(self.mapper.frames)
-            info = self.mapper.add_frame(None, None, prepared=(*frame.prepared, r.pose, frame.image))
+            self.mapped_at.append(None)
+            self.counter.append(0)
+            self.submap.append(0)
+            info = self._map(len(self.prepared) - 1, r.pose)
             record = dict(r.timings, map_s=info["total_s"], loss=info["loss"], loops=len(self.loops),
                           ok=r.odometry_ok, tracked=r.refined)
             if r.optimized:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
                 self._show_loop(r)
+            if self.pending:
+                record["readd_s"] = self._readd_pending()
             self.records.append(record)
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
@@ -149,8 +179,34 @@ class N3SlamStep:
             c, k = self.fe.loops[-1]
             self.viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
 
+    def _map(self, i: int, pose: np.ndarray, **kw) -> dict:
+        """Map frame i (of this run) at world pose [4, 4]; notes where its pairs went (submap, number, pose
+        in the submap's frame)."""
+        info = self.mapper.add_frame(None, None, prepared=(*self.prepared[i], pose, self.images[i]), **kw)
+        self.submap[i] = int(info.get("submap") or 0)
+        self.counter[i] = int(info["frame"] if info.get("submap_frame") is None else info["submap_frame"])
+        S = self.mapper.submaps.infos[self.submap[i]].pose if self.cfg.n3_loop == "submaps" else np.eye(4)
+        self.mapped_at[i] = np.linalg.inv(S) @ pose
+        return info
+
+    def _readd_pending(self, n: int = 1) -> float:
+        """Re-add up to n queued frames at their current poses (those still in the submap being mapped;
+        the others stay as their submap's move put them). Returns the seconds it took."""
+        t0, traj = time.perf_counter(), self.fe.trajectory()
+        for _ in range(n):
+            while self.pending and self.submap[self.pending[0]] != self.mapper.submaps.active:
+                self.pending.pop(0)
+            if not self.pending:
+                break
+            i = self.pending.pop(0)
+            self.mapper.forget_frames([self.counter[i]])
+            self._map(i, traj[i], stay=True)
+        return time.perf_counter() - t0
+
     def follow_loop(self, frame_index: int) -> dict:
         """Make the map follow the optimised trajectory (`n3_loop`); returns the loop's record."""
+        if self.cfg.n3_loop == "submaps":
+            return self.follow_loop_submaps(frame_index)
         traj = self.fe.trajectory()
         moves = np.array([pose_moved(a, b) for a, b in zip(self.mapped_at, traj)])
         mode, mapper = self.cfg.n3_loop, self.mapper
@@ -162,17 +218,42 @@ class N3SlamStep:
             mapper.reset()
         removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
         for i in redo:
-            self.counter[i] = mapper.frames
-            mapper.add_frame(None, None, prepared=(*self.prepared[i], traj[i], self.images[i]))
-            self.mapped_at[i] = traj[i].copy()
-        rec = {"frame": frame_index, "mode": mode, "frames": len(traj), "reintegrated": len(redo),
-               "pairs_removed": removed,
+            self._map(i, traj[i])
+        return self._loop_record(frame_index, mode, moves, t0, {"reintegrated": len(redo), "pairs_removed": removed},
+                                 redo)
+
+    def follow_loop_submaps(self, frame_index: int) -> dict:
+        """`n3_loop: submaps`: each submap moved as a rigid body to fit its frames' optimised poses
+        (`submap_pose`); the frames of the submap being mapped left more than n3_loop_min_move_m from
+        where their submap's move put them are queued to be re-added."""
+        t0 = time.perf_counter()
+        traj, local, sub = self.fe.trajectory(), np.stack(self.mapped_at), np.asarray(self.submap)
+        infos = self.mapper.submaps.infos
+        before = np.stack([infos[k].pose @ L for k, L in zip(sub, local)])
+        poses = {int(k): submap_pose(traj[sub == k], local[sub == k]) for k in np.unique(sub)}
+        shifts = [pose_moved(infos[k].pose, T) for k, T in poses.items()]
+        self.mapper.move_submaps(poses)
+        after = np.stack([poses[int(k)] @ L for k, L in zip(sub, local)])
+        moves = np.linalg.norm(before[:, :3, 3] - traj[:, :3, 3], axis=1)
+        left = np.linalg.norm(after[:, :3, 3] - traj[:, :3, 3], axis=1)
+        beyond = left > self.cfg.n3_loop_min_move_m
+        active = self.mapper.submaps.active
+        queued = [i for i in np.nonzero(beyond & (sub == active))[0] if i not in self.pending]
+        self.pending.extend(int(i) for i in queued)
+        return self._loop_record(frame_index, "submaps", moves, t0, {
+            "submaps": len(poses), "submaps_moved": int(sum(d > self.cfg.n3_loop_min_move_m for d in shifts)),
+            "submap_max_shift_m": float(max(shifts)),
+            "left_max_m": float(left.max()), "left_median_m": float(np.median(left)),
+            "queued": len(queued), "left_beyond_elsewhere": int((beyond & (sub != active)).sum())}, queued)
+
+    def _loop_record(self, frame_index, mode, moves, t0, extra, redo) -> dict:
+        rec = {"frame": frame_index, "mode": mode, "frames": len(moves), **extra,
                "max_move_m": float(moves.max()), "median_move_m": float(np.median(moves)),
                "map_s": time.perf_counter() - t0}
         (log.info if redo else log.debug)(
             "loop at frame %d: the pose graph moved the frames by up to %.3f m (median %.3f m); n3_loop %s "
-            "re-integrated %d of %d frames in %.1f s", frame_index, rec["max_move_m"], rec["median_move_m"],
-            mode, len(redo), len(traj), rec["map_s"])
+            "re-integrated (or queued) %d of %d frames in %.1f s", frame_index, rec["max_move_m"],
+            rec["median_move_m"], mode, len(redo), len(moves), rec["map_s"])
         return rec
 
 
@@ -191,7 +272,8 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
 
 
 def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
-    """The run's N3 map (config in out_dir/n3_config.yaml's place: the caller saves it)."""
+    """The run's N3 map (config in out_dir/n3_config.yaml's place: the caller saves it): one grid, or with
+    `n3_loop: submaps` a `SubmapMapper` (submaps of n3_submap_m, each pass its own, in out_dir/submaps)."""
     mcfg = n3_map_config(cfg, out_dir)
     if mcfg.preprocess.device == "true":
         raise JaxmapError(f"{cfg.n3_config}: preprocess.device=true is not supported by jaxmap slam; set it to false "
@@ -199,7 +281,15 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
     # the tracker reads the map's preprocessed points on the host: auto is the host here
     mcfg = dataclasses.replace(mcfg, preprocess=dataclasses.replace(mcfg.preprocess, device="false"))
     first = seq.frame(0) if len(seq) else None
-    return N3Mapper(mcfg, first_scan=(first.points, first.pose) if first is not None else None)
+    first_scan = (first.points, first.pose) if first is not None else None
+    if cfg.n3_loop == "submaps":
+        from jaxmap.n3.submap_mapper import SubmapMapper
+
+        sub = dataclasses.replace(mcfg.submaps, enabled=True, length_m=cfg.n3_submap_m, revisit=False)
+        mcfg = dataclasses.replace(mcfg, submaps=sub)
+        validate(mcfg, cfg.n3_config)
+        return SubmapMapper(mcfg, first_scan=first_scan, directory=os.path.join(out_dir, "submaps"))
+    return N3Mapper(mcfg, first_scan=first_scan)
 
 
 def n3_checkpoint(mapper: N3Mapper, out_dir: str) -> str:

@@ -1,0 +1,109 @@
+"""`jaxmap slam` with `n3_loop: submaps` (jaxmap.slam.n3slam): a loop correction moves each submap as a
+rigid body by its frames' correction (not its inverse), each pass maps into submaps of its own, and the
+frames of the submap being mapped that still moved against it are re-added."""
+import numpy as np
+
+from analytic_lidar import corridor_scan, pose_at
+from jaxmap.config import SlamConfig, load_config
+from jaxmap.n3 import scan
+from jaxmap.n3.submap_mapper import SubmapMapper
+from jaxmap.slam.n3slam import N3SlamStep, submap_pose
+
+SMALL = ["train.iters=6", "train.nv=128", "train.np_per_voxel=8", "preprocess.max_range_m=10.0",
+         "preprocess.vox_down_m=0.2", "window.initial_blocks=4096", "mesh.min_component_faces=0",
+         "submaps.enabled=true", "submaps.length_m=6", "submaps.blend_m=3", "submaps.revisit=false"]
+
+
+def _rigid(deg: float, t) -> np.ndarray:
+    c, s = np.cos(np.deg2rad(deg)), np.sin(np.deg2rad(deg))
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = t
+    return T
+
+
+def test_submap_pose_fits_the_frames_correction():
+    rng = np.random.default_rng(0)
+    local = np.stack([_rigid(rng.uniform(-30, 30), rng.uniform(-5, 5, 3)) for _ in range(6)])
+    G = _rigid(40.0, [3.0, -1.0, 0.2])
+    np.testing.assert_allclose(submap_pose(G @ local, local), G, atol=1e-12)
+    # a correction that bends the frames a little: the rigid fit lies between the frames' own ones
+    bent = np.stack([_rigid(0.5 * i, [0.01 * i, 0, 0]) @ G @ L for i, L in enumerate(local)])
+    fit = submap_pose(bent, local)
+    err = np.linalg.norm((fit @ local)[:, :3, 3] - bent[:, :3, 3], axis=1)
+    assert err.max() < np.linalg.norm((G @ local)[:, :3, 3] - bent[:, :3, 3], axis=1).max() + 1e-9
+
+
+class _Trajectory:
+    """A front end whose optimised trajectory is given (what the pose graph would return)."""
+
+    def __init__(self, traj):
+        self.traj = traj
+
+    def trajectory(self):
+        return self.traj
+
+
+def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
+    """20 frames of a corridor in submaps of 6 m driven; the 'pose graph' then turns the first submaps'
+    frames by 25 degrees and shifts them, the last submap's frames by another correction, and bends two
+    frames of the last submap 5 cm further. Each submap must take its correction (the wall mapped at
+    y = 6 m reads 0 where the correction puts it, and not where its inverse would), every frame end at
+    its new pose, and exactly the two bent frames be re-added (their old pairs removed)."""
+    cfg = load_config("configs/city_slam.yaml", ["n3_loop=submaps", "n3_loop_min_move_m=0.02", "n3_track=false",
+                                                 "n3_config=configs/city.yaml"], schema=SlamConfig)
+    mcfg = load_config("configs/city.yaml", SMALL)
+    frames = [(corridor_scan(1.0 * i, max_range=10.0), pose_at(1.0 * i)) for i in range(20)]
+    m = SubmapMapper(mcfg, first_scan=frames[0], directory=str(tmp_path / "subs"))
+    step = N3SlamStep(cfg, frames[0][1], m)
+    for i, (pts, pose) in enumerate(frames):
+        p, n, _, img = scan.preprocess(pts, np.eye(4), m.cfg.preprocess, i, image=m.static.evidence)
+        step.prepared.append((p, n))
+        step.images.append(img)
+        step.mapped_at.append(None)
+        step.counter.append(0)
+        step.submap.append(0)
+        step._map(i, pose)
+    sub = np.asarray(step.submap)
+    assert len(set(sub)) >= 3 and np.all(np.diff(sub) >= 0), sub
+    last = sub[-1]
+    wall = np.stack([np.linspace(0.5, 18.5, 60), np.full(60, 6.0), np.full(60, 1.0)], 1)
+    before, ok = m.sdf(wall)
+    assert ok.all() and np.abs(before).max() < 0.1
+
+    G = {k: _rigid(25.0, [2.0, -3.0, 0.1]) if k != last else _rigid(-10.0, [1.0, 0.5, 0.0]) for k in set(sub)}
+    traj = np.stack([G[k] @ pose for k, (_, pose) in zip(sub, frames)])
+    bent = [i for i in range(20) if sub[i] == last][:2]
+    for i in bent:
+        traj[i, 1, 3] += 0.05
+    step.fe = _Trajectory(traj)
+    rec = step.follow_loop(frame_index=19)
+    assert rec["queued"] == 2 and rec["left_beyond_elsewhere"] == 0 and rec["submaps_moved"] == len(set(sub)), rec
+    assert step.pending == bent
+    for k in set(sub):
+        idx = sub == k
+        got = m.submaps.infos[k].pose @ step.mapped_at[np.nonzero(idx)[0][0]]
+        fit = submap_pose(traj[idx], np.stack([step.mapped_at[i] for i in np.nonzero(idx)[0]]))
+        np.testing.assert_allclose(m.submaps.infos[k].pose, fit, atol=1e-9)
+        if k != last:  # a rigid correction: exact
+            np.testing.assert_allclose(got, traj[np.nonzero(idx)[0][0]], atol=1e-9)
+    # the wall where each submap's correction carries it (each point read where its own submap rules)
+    owner = np.clip(np.searchsorted([frames[i][1][0, 3] for i in range(20)], wall[:, 0]) - 1, 0, 19)
+    moved = np.stack([(G[sub[o]] @ np.append(w, 1.0))[:3] for o, w in zip(owner, wall)])
+    inner = np.abs(wall[:, 0] - np.round(wall[:, 0] / 6.0) * 6.0) > 1.5  # away from the seams
+    after, ok_after = m.sdf(moved[inner])
+    assert ok_after.all() and np.abs(after).max() < 0.1, np.abs(after).max()
+    wrong = np.stack([(np.linalg.inv(G[sub[o]]) @ np.append(w, 1.0))[:3] for o, w in zip(owner, wall)])
+    s_wrong, ok_wrong = m.sdf(wrong[inner])
+    assert (~ok_wrong).mean() > 0.3 or np.abs(s_wrong[ok_wrong]).mean() > 0.5
+    # the two bent frames re-added, one after each frame: their old pairs gone, they sit at their poses
+    removed, forget = [], m.forget_frames
+    m.forget_frames = lambda fr: removed.append((list(fr), forget(fr))) or removed[-1][1]
+    old_counts = [step.counter[i] for i in bent]
+    for _ in bent:
+        step._readd_pending()
+    assert not step.pending
+    assert [r[0] for r in removed] == [[c] for c in old_counts] and all(r[1] > 0 for r in removed), removed
+    for i in bent:
+        np.testing.assert_allclose(m.submaps.infos[last].pose @ step.mapped_at[i], traj[i], atol=1e-9)
+        assert step.submap[i] == last
