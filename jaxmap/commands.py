@@ -204,13 +204,43 @@ def imt(args) -> int:
     return 0
 
 
+def slam_config(args):
+    """`jaxmap slam`'s config: `--set n3.<key>=<value>` goes to n3_set (the N3 map's config); a `--set` of a
+    key the run would not read with its map kind is refused, naming the key (`SlamConfig.unused`)."""
+    import argparse
+    import dataclasses
+
+    from jaxmap.config import ConfigError, SlamConfig
+    from jaxmap.slam.n3slam import n3_map_config
+
+    n3 = [o[3:] for o in args.overrides if o.startswith("n3.")]
+    rest = [o for o in args.overrides if not o.startswith("n3.")]
+    cfg = config_from_args(argparse.Namespace(**{**vars(args), "overrides": rest}), SlamConfig)
+    unused = cfg.unused()
+    for o in rest:
+        key = o.split("=", 1)[0].strip()
+        why = unused.get(key) or unused.get(key.split(".")[0])
+        if why:
+            raise ConfigError(f"--set '{o}': {why}")
+    if n3 and not cfg.n3_config:
+        raise ConfigError(f"--set 'n3.{n3[0]}': n3.<key> sets the N3 map's config, and this run has none (n3_config "
+                          "is empty): set n3_config (e.g. --set n3_config=city)")
+    cfg = dataclasses.replace(cfg, n3_set=[*cfg.n3_set, *n3])
+    if cfg.n3_config:
+        try:  # a ConfigError for a bad n3 key now, not after the front end started
+            n3_map_config(cfg, cfg.output)
+        except ConfigError as e:
+            raise ConfigError(str(e).replace("--set '", "--set 'n3.")) from None
+    return cfg
+
+
 def slam(args) -> int:
     """`jaxmap slam CONFIG [--data DIR] [--out RUN]`: odometry, loop closure, pose graph, remapped map."""
     from jaxmap.config import SlamConfig
     from jaxmap.slam.run import run_slam
     from jaxmap.viewer import view_options
 
-    cfg = config_from_args(args, SlamConfig)
+    cfg = slam_config(args)
     with claim(cfg.output, "slam", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
         out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}

@@ -127,3 +127,30 @@ def test_forget_frames_removes_exactly_those_pairs():
     np.testing.assert_array_equal(np.asarray(new.frame)[0, :3], [0, 2, 0])
     np.testing.assert_array_equal(np.asarray(new.pairs)[0, :3, 0], [0.0, 8.0, 16.0])   # pairs 0, 2, 4 of block 0
     np.testing.assert_array_equal(np.asarray(new.pairs)[1], np.asarray(st.pairs)[1])    # untouched block
+
+
+def test_slam_set_either_changes_the_run_or_is_refused_naming_the_key(tmp_path, capsys):
+    """`jaxmap slam --set`: a key of the N3 map goes in as n3.<key> (into n3_set and the map's config);
+    a key the run's map kind does not read is refused, naming it, before anything runs."""
+    import argparse
+
+    from jaxmap.cli import main
+    from jaxmap.commands import slam_config
+    from jaxmap.slam.n3slam import n3_map_config
+
+    def args(*sets, config="city_slam"):
+        return argparse.Namespace(config=config, overrides=list(sets), data=None, out=str(tmp_path / "run"))
+
+    cfg = slam_config(args("n3.preprocess.veil_m=0.3", "n3.train.iters=7"))
+    n3 = n3_map_config(cfg, str(tmp_path / "run"))
+    assert cfg.n3_set == ["preprocess.veil_m=0.3", "train.iters=7"]
+    assert n3.preprocess.veil_m == 0.3 and n3.train.iters == 7
+    for bad, key in (("preprocess.veil_m=0.3", "preprocess.veil_m"), ("eval.n_samples=10", "eval.n_samples"),
+                     ("mesh_at_loops=true", "mesh_at_loops")):
+        assert main(["slam", "city_slam", "--set", bad, "--out", str(tmp_path / "r2")]) == 2
+        assert key in capsys.readouterr().err
+    assert main(["slam", "room_slam", "--set", "n3_loop=submaps", "--out", str(tmp_path / "r3")]) == 2
+    assert "n3_loop" in capsys.readouterr().err
+    assert main(["slam", "city_slam", "--set", "n3.train.iterz=3", "--out", str(tmp_path / "r4")]) == 2
+    assert "n3.train.iterz" in capsys.readouterr().err
+    assert not (tmp_path / "r2").exists() and not (tmp_path / "r4").exists()

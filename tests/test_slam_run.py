@@ -84,7 +84,8 @@ def test_slam_front_end_drives_the_map_on_a_dense_room_stretch(tmp_path):
     icfg = cfg.imt()
     ref = mesh_and_metrics(build_map(icfg, open_run_sequence(icfg), progress=False), icfg, str(tmp_path), "gt.ply")
     assert out["metrics"]["chamfer_l1_cm"] < 2.0 * ref["metrics"]["chamfer_l1_cm"], (out["metrics"], ref["metrics"])
-    saved = json.loads((tmp_path / "run" / "metrics.json").read_text())
-    assert saved["keyframes"] == out["keyframes"] == 8
+    saved = json.loads((tmp_path / "run" / "slam.json").read_text())
+    assert saved["keyframes"] == out["keyframes"] == 8 and "metrics" not in saved
+    assert json.loads((tmp_path / "run" / "metrics.json").read_text()) == out["metrics"]
     rows = [ln for ln in (tmp_path / "run" / "trajectory_tum.txt").read_text().splitlines() if not ln.startswith("#")]
     assert len(rows) == out["frames"] == 8

@@ -61,8 +61,8 @@ def n3_speed(city: str, out: str, quick: bool) -> dict:
 
 
 def command_run(args: list[str], out: str, cache: str) -> dict:
-    """`jaxmap ARGS --out OUT` in its own process with the compile cache `cache`; its metrics.json (or
-    timing.json) summary, and the process's seconds."""
+    """`jaxmap ARGS --out OUT` in its own process with the compile cache `cache`; its timing.json summary
+    (with a SLAM run's steps, frames and keyframes from its slam.json), and the process's seconds."""
     env = dict(os.environ, JAXMAP_CACHE_DIR=cache)
     env.pop("JAX_COMPILATION_CACHE_DIR", None)
     cmd = [sys.executable, "-m", "jaxmap.cli", *args, "--out", out, "--overwrite", "--no-progress"]
@@ -72,9 +72,9 @@ def command_run(args: list[str], out: str, cache: str) -> dict:
         return {"failed": " ".join(cmd), "stderr": res.stderr[-3000:]}
     with open(os.path.join(out, "timing.json")) as f:
         summary = json.load(f)["summary"]
-    metrics = os.path.join(out, "metrics.json")
-    if os.path.isfile(metrics):
-        with open(metrics) as f:
+    slam = os.path.join(out, "slam.json")  # a SLAM run's summary
+    if os.path.isfile(slam):
+        with open(slam) as f:
             summary.update({k: v for k, v in json.load(f).items() if k in ("step", "frames", "keyframes")})
     return {**summary, "process_s": time.perf_counter() - t0}
 
@@ -82,7 +82,7 @@ def command_run(args: list[str], out: str, cache: str) -> dict:
 def slam_speed(city: str, out: str, quick: bool) -> dict:
     from jaxmap.config import shipped_config_path
 
-    sets = EVAL_SAMPLES + (["--set", f"data.end_frame={QUICK_FRAMES}"] if quick else [])
+    sets = ["--set", "n3." + EVAL_SAMPLES[1]] + (["--set", f"data.end_frame={QUICK_FRAMES}"] if quick else [])
     r = command_run(["slam", shipped_config_path("city_slam.yaml"), "--data", city, *sets],
                     os.path.join(out, "slam"), os.path.join(out, "xla_cache_host"))
     keys = ("wall_s", "wall_s_per_frame", "frames_run", "compile_s", "step", "process_s", "failed", "stderr")

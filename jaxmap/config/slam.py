@@ -197,10 +197,25 @@ class SlamConfig:
     n3_loop_min_move_m: float = 0.02  # n3: a loop that moves no frame's position more than this leaves the map
                                       # as it is; moved re-adds the frames that moved more; submaps re-adds the
                                       # frames of the submap being mapped that moved more than this against it
+    n3_set: list = field(default_factory=list)  # overrides of n3_config's keys ("section.key=value"): with map_kind
+                                      # n3 the map's settings are n3_config's, not this file's preprocess/map/
+                                      # mesh/eval (`jaxmap slam --set n3.train.iters=20` appends one)
     n3_submap_m: float = 30.0         # n3_loop submaps: a new submap once the sensor has driven this far in the
                                       # current one (the N3 map's submaps.length_m, with submaps.revisit false)
     output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
+
+    def unused(self) -> dict[str, str]:
+        """{key or section: why} of what a run with this map kind does not read (`jaxmap slam` refuses
+        `--set` of them rather than ignore it)."""
+        if self.map_kind == "n3":
+            why = (f"with map_kind n3 the map's settings are those of n3_config ({self.n3_config}): set the key "
+                   "there or as --set n3.<key>=<value> (e.g. --set n3.preprocess.veil_m=0.3)")
+            return {**{k: why for k in ("preprocess", "map", "mesh", "eval")},
+                    "mesh_at_loops": "mesh_at_loops meshes the imt map at loops; with map_kind n3 it is not used"}
+        why = f"{{}} is read with map_kind n3 only (this run's map_kind is {self.map_kind})"
+        return {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_loop",
+                                             "n3_loop_min_move_m", "n3_submap_m")}
 
     def imt(self) -> ImtConfig:
         return ImtConfig(data=self.data, preprocess=self.preprocess, map=self.map, mesh=self.mesh, eval=self.eval,

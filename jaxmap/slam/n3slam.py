@@ -49,10 +49,10 @@ TRACK_MIN_FRAMES = 10
 
 
 def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
-    """The N3 map's config: `cfg.n3_config` with the SLAM run's data selection (path, kind, frames) and
-    `out_dir` as output."""
+    """The N3 map's config: `cfg.n3_config` with `cfg.n3_set`'s overrides, the SLAM run's data selection
+    (path, kind, frames) and `out_dir` as output."""
     d = cfg.data
-    return load_config(cfg.n3_config, [f"data.path={d.path}", f"data.kind={d.kind}",
+    return load_config(cfg.n3_config, [*cfg.n3_set, f"data.path={d.path}", f"data.kind={d.kind}",
                                        f"data.begin_frame={d.begin_frame}", f"data.end_frame={d.end_frame}",
                                        f"data.every_frame={d.every_frame}", f"output={out_dir}"], schema=MapConfig)
 

@@ -17,8 +17,9 @@ pose, and earlier keyframes are remapped as each snapshot arrives.
 
 A run directory holds config.yaml, checkpoint/ (latent map + keyframe store), mesh.ply,
 trajectory_kitti.txt and trajectory_tum.txt (every frame, and odometry_kitti.txt: odometry alone),
-the loop meshes, metrics.json (ATE of odometry and of the optimised trajectory against the
-sequence's poses, reconstruction metrics when the sequence has ground truth, per-loop timings) and,
+the loop meshes, slam.json (ATE of odometry and of the optimised trajectory against the sequence's
+poses, per-loop records and timings, tracking), metrics.json (reconstruction metrics alone, when the
+sequence has ground truth) and,
 with `n3_config` (map_kind imt), an N3 map built from the optimised poses in n3/. With map_kind n3,
 checkpoint/ is the N3 map (`N3Mapper.load`), n3_config.yaml its resolved config, timing.json its frames.
 
@@ -238,8 +239,7 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     if cfg.n3_config:
         out["n3"] = n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
-    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-        json.dump(out, f, default=_jsonable)
+    write_slam_summary(out_dir, out)
     return out
 
 
@@ -266,9 +266,15 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
     rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer,
                      extra=compiles_since(n_compiles))
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
-    with open(os.path.join(out_dir, "metrics.json"), "w") as f:
-        json.dump(out, f, default=_jsonable)
+    write_slam_summary(out_dir, out)
     return out
+
+
+def write_slam_summary(out_dir: str, out: dict) -> None:
+    """slam.json: the run's SLAM summary (frames, keyframes, loops, ATE, tracking, step timings); the
+    reconstruction metrics are metrics.json's alone (`finish_run` wrote it)."""
+    with open(os.path.join(out_dir, "slam.json"), "w") as f:
+        json.dump({k: v for k, v in out.items() if k != "metrics"}, f, default=_jsonable)
 
 
 def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarray | None, evaluate: bool) -> dict:
