@@ -180,6 +180,8 @@ def _imt_args(sub) -> None:
 def _slam_args(sub) -> None:
     p = sub.add_parser("slam", help="ICP odometry, loop closure, pose graph and a remapped neural map")
     _add_config_args(p, default_config="room_slam", example="frontend.odometry.method=kiss_icp")
+    p.add_argument("--resume", metavar="RUN_DIR",
+                   help="continue a map_kind n3 run stopped by Ctrl-C or SIGTERM from its saved state")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
     _add_view_args(p)

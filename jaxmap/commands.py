@@ -6,6 +6,7 @@ not pay for importing jax, flax and open3d (seconds) when they do not use them.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -235,14 +236,28 @@ def slam_config(args):
 
 
 def slam(args) -> int:
-    """`jaxmap slam CONFIG [--data DIR] [--out RUN]`: odometry, loop closure, pose graph, remapped map."""
+    """`jaxmap slam CONFIG [--data DIR] [--out RUN]` or `jaxmap slam --resume RUN`: odometry, loop closure,
+    pose graph, remapped map."""
     from jaxmap.config import SlamConfig
     from jaxmap.slam.run import run_slam
     from jaxmap.viewer import view_options
 
-    cfg = slam_config(args)
-    with claim(cfg.output, "slam", overwrite=args.overwrite):  # one writer; an existing run needs --overwrite
-        out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args))
+    if args.resume:
+        if args.overrides or args.data or args.out:
+            raise ConfigError(f"--resume {args.resume} continues a run with its own config.yaml; drop "
+                              "--set/--data/--out (or start a new run with them)")
+        cfg_path = os.path.join(args.resume, "config.yaml")
+        if not os.path.isfile(cfg_path):
+            raise DataError(f"{cfg_path}: missing, so the run cannot be continued; start again with --overwrite")
+        cfg = dataclasses.replace(load_config(cfg_path, schema=SlamConfig), output=args.resume)
+    else:
+        cfg = slam_config(args)
+    try:  # one writer; an existing run needs --resume or --overwrite
+        with claim(cfg.output, "slam", resume=bool(args.resume), overwrite=args.overwrite):
+            out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args),
+                           resume=bool(args.resume))
+    except KeyboardInterrupt as e:
+        return exit_code(e)
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}
     brief["loops"] = len(out["loops"])
     for k in ("ate_odometry", "ate_slam"):

@@ -251,8 +251,8 @@ def _refusal(run_dir: str, command: str, state: RunState) -> str:
     done = state.status == "finished"
     at = f" (checkpoint at frame {state.frames})" if state.frames is not None and not done else ""
     head = f"{run_dir}: holds a {'finished' if done else 'started, unfinished'} {what}{at}; "
-    if command == "map" and not done and state.command in (None, "map"):
-        return head + f"continue it with: jaxmap map --resume {run_dir}, or replace it with --overwrite"
+    if command in ("map", "slam") and not done and state.command in (None, command):
+        return head + f"continue it with: jaxmap {command} --resume {run_dir}, or replace it with --overwrite"
     return head + "replace it with --overwrite, or pick another --out"
 
 

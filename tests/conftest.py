@@ -62,6 +62,17 @@ def small_city(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def small_noisy_city(tmp_path_factory):
+    """The small city (64 frames ~1 m apart, a 62 m loop) with 2 cm range noise: the odometry drifts
+    9.6 cm, and the loop closure at frame 56 moves the frames by up to ~5 cm."""
+    from jaxmap.synth.city import generate_city
+
+    out = tmp_path_factory.mktemp("city_small_noisy")
+    generate_city(out, seed=0, small=True, noise_m=0.02)
+    return out
+
+
+@pytest.fixture(scope="session")
 def small_parking_city(tmp_path_factory):
     """Directory (pathlib.Path) of `generate_city(small=True, seed=0, parking=True)`: the small city with
     exactly the two parking cars (one drives off its place, one parks; moving_objects.json)."""

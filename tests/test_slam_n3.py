@@ -53,17 +53,6 @@ def test_map_kind_n3_needs_an_n3_config():
         load_config(None, ["map_kind=n3", "n3_config=configs/city.yaml", "n3_loop=later"], schema=SlamConfig)
 
 
-@pytest.fixture(scope="module")
-def noisy_small_city(tmp_path_factory):
-    """The small city (64 frames ~1 m apart, a 62 m loop) with 2 cm range noise: the odometry drifts
-    9.6 cm, and the loop closure at frame 56 moves the frames by up to ~5 cm."""
-    from jaxmap.synth.city import generate_city
-
-    out = tmp_path_factory.mktemp("city_small_noisy")
-    generate_city(out, seed=0, small=True, noise_m=0.02)
-    return out
-
-
 def _frame_fit(run_dir, data, n3cfg) -> np.ndarray:
     """Per frame: median |SDF| (m) of the saved N3 map at the frame's points placed at its final SLAM pose."""
     from jaxmap.n3 import scan
@@ -81,7 +70,7 @@ def _frame_fit(run_dir, data, n3cfg) -> np.ndarray:
     return np.asarray(out)
 
 
-def test_online_n3_map_follows_the_loop_correction(noisy_small_city, tmp_path):
+def test_online_n3_map_follows_the_loop_correction(small_noisy_city, tmp_path):
     """`jaxmap slam` with map_kind n3 (the LiDAR config's KISS-ICP odometry, no tracking) on the noisy
     small city (64 frames at 10 Hz): the loop closure cuts the ATE (9.6 -> 8.2 cm), and the map follows
     it. Measured with this test's N3 settings (20 iterations a frame): C-L1 5.52 cm with `n3_loop: moved`,
@@ -93,7 +82,7 @@ def test_online_n3_map_follows_the_loop_correction(noisy_small_city, tmp_path):
 
     n3cfg = load_config("configs/city.yaml", ["train.iters=20", "train.nv=512", "eval.n_samples=200000"])
     save_config(n3cfg, str(tmp_path / "n3.yaml"))
-    cfg = load_config("configs/city_slam.yaml", [f"data.path={noisy_small_city}", "map_kind=n3", "n3_track=false",
+    cfg = load_config("configs/city_slam.yaml", [f"data.path={small_noisy_city}", "map_kind=n3", "n3_track=false",
                                                  "n3_loop=moved", f"n3_config={tmp_path / 'n3.yaml'}"],
                       schema=SlamConfig)
     out = run_slam(cfg, str(tmp_path / "run"), progress=False)
@@ -102,7 +91,7 @@ def test_online_n3_map_follows_the_loop_correction(noisy_small_city, tmp_path):
     first = out["loops"][0]
     assert first["reintegrated"] >= 3 and first["pairs_removed"] > 0, first
     assert out["metrics"]["chamfer_l1_cm"] < 6.0, out["metrics"]
-    fit = _frame_fit(tmp_path / "run", noisy_small_city, n3cfg)
+    fit = _frame_fit(tmp_path / "run", small_noisy_city, n3cfg)
     assert fit.max() < 0.019, fit
 
 

@@ -80,6 +80,8 @@ class KissOdometry:
         self.prev: Scan | None = None
         self.last: Scan | None = None
         self.n_frames = 0
+        self.threshold_m = float(self.cfg.kiss_initial_threshold_m)  # the adaptive threshold's start
+        self.deviations: list[np.ndarray] = []  # KISS-ICP's model deviation of each step (see __getstate__)
 
     def step(self, points_s: np.ndarray, scan: Scan | None = None) -> OdomStep:
         """Register the next scan. points_s: [N,3] float, sensor frame; scan: `Scan(points_s, cfg)` if made
@@ -92,7 +94,9 @@ class KissOdometry:
         pts = np.ascontiguousarray(np.asarray(points_s, dtype=np.float64).reshape(-1, 3))
         if frame == 1:
             self._seed_first_step(scan)
+        guess = self.kiss.last_pose @ self.kiss.last_delta
         self.kiss.register_frame(pts, np.empty((0,), dtype=np.float64))
+        self.deviations.append(np.linalg.inv(guess) @ self.kiss.last_pose)  # as KISS-ICP computes it
         self.pose = compose(self.C, self.T0, self.kiss.last_pose)
         if self.prev is None:
             self.prev = scan
@@ -125,9 +129,36 @@ class KissOdometry:
             return
         log.warning("odometry frame 1: no registration of the first two scans fits (fitness %.3f); KISS-ICP starts "
                     "from no motion", res.fitness if res else 0.0)
+        self.threshold_m = KISS_INITIAL_THRESHOLD_M
+        self.kiss.adaptive_threshold = get_threshold_estimator(self._kiss_config())
+
+    def _kiss_config(self):
         kc = kiss_config(self.cfg)
-        kc.adaptive_threshold.initial_threshold = KISS_INITIAL_THRESHOLD_M
-        self.kiss.adaptive_threshold = get_threshold_estimator(kc)
+        kc.adaptive_threshold.initial_threshold = self.threshold_m
+        return kc
+
+    def __getstate__(self) -> dict:
+        """KISS-ICP's C++ state cannot be pickled (a `jaxmap slam` checkpoint pickles the front end): its
+        local map is kept as its points, and its adaptive threshold as the deviations it was given."""
+        st = dict(self.__dict__)
+        kiss = st.pop("kiss")
+        st["kiss_state"] = {"last_pose": kiss.last_pose, "last_delta": kiss.last_delta,
+                            "local_map": kiss.local_map.point_cloud().copy()}
+        return st
+
+    def __setstate__(self, st: dict) -> None:
+        """KISS-ICP rebuilt: its local map's points added back voxel by voxel in their order (the same
+        voxels, the same points), the threshold fed the same deviations again."""
+        from kiss_icp.kiss_icp import KissICP
+
+        ks = st.pop("kiss_state")
+        self.__dict__.update(st)
+        self.kiss = KissICP(self._kiss_config())
+        self.kiss.last_pose, self.kiss.last_delta = ks["last_pose"], ks["last_delta"]
+        if len(ks["local_map"]):
+            self.kiss.local_map.add_points(ks["local_map"])
+        for d in self.deviations:
+            self.kiss.adaptive_threshold.update_model_deviation(d)
 
     def _quality(self, source: Scan, target: Scan, T: np.ndarray) -> tuple[float, float, np.ndarray]:
         """(fitness, inlier RMSE, [6,6] information) of T_target_source on the prepared scans."""

@@ -22,19 +22,25 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
      measurements that chose between them.
 The preprocessed scans (sensor frame) of every frame are kept on the host for step 4 (a few hundred
 kB a frame).
+
+A run stopped by Ctrl-C or SIGTERM (between two frames) and a finished run save the map (checkpoint/)
+and then the step's state (slam_state.pkl: the front end with its pose graph and KISS-ICP's local map,
+the per-frame scans and records); `jaxmap slam --resume RUN` goes on from there (`load_slam`) with the
+trajectory and map the run would have made without the stop.
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
 import os
+import pickle
 import time
 
 import numpy as np
 
 from jaxmap.config import MapConfig, SlamConfig, load_config, validate
-from jaxmap.errors import JaxmapError
-from jaxmap.frame_loop import Frame, Prefetcher, Progress, medians, run_frames
+from jaxmap.errors import CheckpointError, JaxmapError
+from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, medians, run_frames
 from jaxmap.geometry import compose, orthonormalize
 from jaxmap.n3 import scan
 from jaxmap.n3.mapper import N3Mapper
@@ -125,6 +131,11 @@ class N3SlamStep:
         self.loops: list[dict] = []
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
         self.records: list[dict] = []            # per frame: the step's record (timings of each part)
+
+    def __getstate__(self) -> dict:
+        """What a SLAM checkpoint keeps of the step (the map is saved beside it; the tracker and the viewer
+        are the run's, set again on resume)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("mapper", "track", "viewer")}
 
     def _refine(self, points: np.ndarray):
         """The front end's `refine` for this frame: track against the map (none before the first frame)."""
@@ -257,15 +268,25 @@ class N3SlamStep:
         return rec
 
 
-def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = True, viewer=None, track=None) -> dict:
-    """The front end, tracking and the online N3 map over the whole sequence.
-    Returns the trajectory, the odometry alone, per-loop and per-frame tracking records, and the LoopResult."""
+def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = True, viewer=None, track=None,
+                    step: N3SlamStep | None = None, out_dir: str | None = None) -> dict:
+    """The front end, tracking and the online N3 map over the sequence (from the frame after the last of
+    `step`, a resumed run's, else from the start); out_dir: where Ctrl-C and the end save the run
+    (`save_slam`; None: not saved). Returns the trajectory, the odometry alone, per-loop and per-frame
+    tracking records, and the LoopResult."""
     if track is None and cfg.n3_track:
         track = default_tracker(cfg.n3_track_min_valid)
-    step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
+    if step is None:
+        step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
+    step.mapper, step.track, step.viewer = mapper, track, viewer
+    start = len(step.prepared)
     load = lambda s, i: prepare_slam_frame(cfg, mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
-    loop = run_frames(Prefetcher(seq, 0, len(seq), load), step, total=len(seq), progress=bar, viewer=viewer)
+    saves = None if out_dir is None else Checkpoints(
+        save=lambda background: save_slam(step, out_dir), path=os.path.join(out_dir, "checkpoint"),
+        resume=f"jaxmap slam --resume {out_dir}")
+    loop = run_frames(Prefetcher(seq, start, len(seq), load), step, total=len(seq), start=start, progress=bar,
+                      viewer=viewer, checkpoints=saves)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
             "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
             "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "map_s", "loop_s"))}
@@ -292,7 +313,34 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
     return N3Mapper(mcfg, first_scan=first_scan)
 
 
-def n3_checkpoint(mapper: N3Mapper, out_dir: str) -> str:
-    path = os.path.join(out_dir, "checkpoint")
-    mapper.save(path)
-    return path
+STATE_FILE = "slam_state.pkl"
+
+
+def save_slam(step: N3SlamStep, out_dir: str) -> None:
+    """The run's SLAM checkpoint: the map in out_dir/checkpoint, then the step's state in
+    out_dir/slam_state.pkl (replaced whole, once the map is written; it names the map's frame count,
+    so a state never goes with another map)."""
+    step.mapper.save(os.path.join(out_dir, "checkpoint"))
+    path = os.path.join(out_dir, STATE_FILE)
+    with open(path + ".tmp", "wb") as f:
+        pickle.dump({"frames": len(step.prepared), "map_frames": step.mapper.frames, "step": step}, f,
+                    protocol=pickle.HIGHEST_PROTOCOL)
+    os.replace(path + ".tmp", path)
+
+
+def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
+    """(map, step) of the SLAM checkpoint in out_dir (`save_slam`); CheckpointError naming what is missing
+    or does not match."""
+    from jaxmap.n3.submap_mapper import load_map
+
+    path = os.path.join(out_dir, STATE_FILE)
+    if not os.path.isfile(path):
+        raise CheckpointError(f"{path}: missing, so the run cannot be continued (it stopped before its first "
+                              "save, or was killed): start again with --overwrite")
+    with open(path, "rb") as f:
+        saved = pickle.load(f)
+    mapper = load_map(os.path.join(out_dir, "checkpoint"))
+    if mapper.frames != saved["map_frames"]:
+        raise CheckpointError(f"{out_dir}: the map's checkpoint holds {mapper.frames} frames and {STATE_FILE} "
+                              f"{saved['map_frames']}: they are not one save; start again with --overwrite")
+    return mapper, saved["step"]

@@ -45,7 +45,7 @@ from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.slam.frontend import FrontEnd
-from jaxmap.slam.n3slam import SlamFrame, n3_checkpoint, n3_map_config, open_n3_mapper, run_n3_frontend
+from jaxmap.slam.n3slam import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend
 from jaxmap.slam.odometry_common import Scan
 from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_trajectory
 
@@ -217,13 +217,18 @@ def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
 
 
 def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
-             view: dict | None = None) -> dict:
-    """view: {"port", "mesh_every"} for a live viewer (`jaxmap.frame_loop.open_viewer`), None = none."""
+             view: dict | None = None, resume: bool = False) -> dict:
+    """view: {"port", "mesh_every"} for a live viewer (`jaxmap.frame_loop.open_viewer`), None = none.
+    resume: go on from the run's SLAM checkpoint in out_dir (map_kind n3; `jaxmap.slam.n3slam.load_slam`)."""
     t_start = time.perf_counter()
     os.makedirs(out_dir, exist_ok=True)
-    save_config(cfg, os.path.join(out_dir, "config.yaml"))
+    if not resume:
+        save_config(cfg, os.path.join(out_dir, "config.yaml"))
     if cfg.map_kind == "n3":
-        return run_slam_n3(cfg, out_dir, progress, evaluate, view)
+        return run_slam_n3(cfg, out_dir, progress, evaluate, view, resume=resume)
+    if resume:
+        raise JaxmapError(f"--resume {out_dir}: a map_kind {cfg.map_kind} run is not checkpointed (map_kind n3 "
+                          "runs are); start it again with --overwrite")
     icfg = cfg.imt()
     seq = open_run_sequence(icfg)
     mapper = ImtMapper(icfg)
@@ -244,18 +249,22 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
 
 
 def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
-                view: dict | None = None, track=None) -> dict:
+                view: dict | None = None, track=None, resume: bool = False) -> dict:
     """`map_kind: n3` (`jaxmap.slam.n3slam`): the N3 map of `n3_config`, mapped online at the tracked poses
     and following each loop correction. Leaves what `run_slam` does, the map being N3's (checkpoint/
     `N3Mapper.load`s; n3_config.yaml is the map's resolved config). track: a tracker in place of
     `jaxmap.slam.track.track_scan` (tests)."""
     seq = open_run_sequence(cfg)
     n_compiles = len(COMPILE_SECONDS)
-    mapper = open_n3_mapper(cfg, out_dir, seq)
-    save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
+    step = None
+    if resume:
+        mapper, step = load_slam(out_dir)
+        log.info("resuming %s at frame %d of %d", out_dir, len(step.prepared), len(seq))
+    else:
+        mapper = open_n3_mapper(cfg, out_dir, seq)
+        save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
     viewer = open_viewer(view, mapper)
-    res = run_n3_frontend(cfg, seq, mapper, progress, viewer=viewer, track=track)
-    n3_checkpoint(mapper, out_dir)
+    res = run_n3_frontend(cfg, seq, mapper, progress, viewer=viewer, track=track, step=step, out_dir=out_dir)
     traj = np.asarray(res["trajectory"])
     tracked = [t for t in res["tracking"] if t.get("tracked")]
     out = {"run": out_dir, "map_kind": "n3", "frames": len(seq), "keyframes": len(res["keyframe_frames"]),
