@@ -273,7 +273,8 @@ class Submaps:
         info = self.infos[k]
         key = (k, len(info.path), info.pose.tobytes())
         tree = self._trees.get(key)
-        if tree is None:
+        if tree is None:  # (the path grew or the submap moved: its older tree goes)
+            self._trees = {kk: t for kk, t in self._trees.items() if kk[0] != k}
             tree = self._trees[key] = cKDTree(info.world_path())
         return tree.query(points_w)[0]
 

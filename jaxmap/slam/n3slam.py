@@ -306,7 +306,9 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
     if cfg.n3_loop == "submaps":
         from jaxmap.n3.submap_mapper import SubmapMapper
 
-        sub = dataclasses.replace(mcfg.submaps, enabled=True, length_m=cfg.n3_submap_m, revisit=False)
+        # two resident: a new submap's first frames are tracked against the one left (not read back from disk)
+        sub = dataclasses.replace(mcfg.submaps, enabled=True, length_m=cfg.n3_submap_m, revisit=False,
+                                  resident=max(mcfg.submaps.resident, 2))
         mcfg = dataclasses.replace(mcfg, submaps=sub)
         validate(mcfg, cfg.n3_config)
         return SubmapMapper(mcfg, first_scan=first_scan, directory=os.path.join(out_dir, "submaps"))
