@@ -101,7 +101,7 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     m.forget_frames = lambda fr: removed.append((list(fr), forget(fr))) or removed[-1][1]
     old_counts = [step.counter[i] for i in bent]
     for _ in bent:
-        step._readd_pending()
+        step.readd_pending()
     assert not step.pending
     assert [r[0] for r in removed] == [[c] for c in old_counts] and all(r[1] > 0 for r in removed), removed
     for i in bent:

@@ -127,6 +127,7 @@ class N3SlamStep:
         self.counter: list[int] = []             # per frame: its number in its map (pairs carry it)
         self.submap: list[int] = []              # per frame: its submap (0: one grid)
         self.pending: list[int] = []             # n3_loop submaps: frames to re-add, one after each frame
+        self.last = np.inf                       # the position of the sequence's last frame (run_n3_frontend)
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
         self.loops: list[dict] = []
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
@@ -173,8 +174,8 @@ class N3SlamStep:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
                 self._show_loop(r)
-            if self.pending:
-                record["readd_s"] = self._readd_pending()
+            if self.pending:  # one a frame; the last frame re-adds those left (the map is finished with it)
+                record["readd_s"] = self.readd_pending(len(self.pending) if frame.position >= self.last else 1)
             self.records.append(record)
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
@@ -200,7 +201,7 @@ class N3SlamStep:
         self.mapped_at[i] = np.linalg.inv(S) @ pose
         return info
 
-    def _readd_pending(self, n: int = 1) -> float:
+    def readd_pending(self, n: int = 1) -> float:
         """Re-add up to n queued frames at their current poses (those still in the submap being mapped;
         the others stay as their submap's move put them). Returns the seconds it took."""
         t0, traj = time.perf_counter(), self.fe.trajectory()
@@ -278,7 +279,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
         track = default_tracker(cfg.n3_track_min_valid)
     if step is None:
         step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
-    step.mapper, step.track, step.viewer = mapper, track, viewer
+    step.mapper, step.track, step.viewer, step.last = mapper, track, viewer, len(seq) - 1
     start = len(step.prepared)
     load = lambda s, i: prepare_slam_frame(cfg, mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
@@ -289,7 +290,8 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
                       viewer=viewer, checkpoints=saves)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
             "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
-            "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "map_s", "loop_s"))}
+            "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "map_s", "loop_s")),
+            "readd_s": float(sum(r.get("readd_s", 0.0) for r in step.records))}
 
 
 def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
