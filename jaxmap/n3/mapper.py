@@ -45,7 +45,7 @@ class N3Mapper:
             from jaxmap.errors import ConfigError
 
             raise ConfigError("submaps.enabled=true: a map of submaps is a SubmapMapper (jaxmap map makes one); "
-                              "N3Mapper maps one grid (jaxmap slam too): set submaps.enabled=false")
+                              "N3Mapper maps one grid: set submaps.enabled=false (jaxmap slam: n3_loop=submaps)")
         if state is None and first_scan is not None:
             self.cfg = scan.resolve_layout(self.cfg, first_scan[0])
         self.static = core.N3Static.from_config(self.cfg)

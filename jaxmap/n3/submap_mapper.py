@@ -203,7 +203,7 @@ class SubmapMapper(N3Mapper):
         return self._forget(frames, self._local)
 
     def reset(self) -> None:
-        raise NotImplementedError("a map of submaps is not reset (jaxmap slam maps one grid)")
+        raise NotImplementedError("a map of submaps is not reset (jaxmap slam n3_loop rebuild maps one grid)")
 
     # ---- checkpoints -------------------------------------------------------------------------------
     def save(self, path: str, background: bool = False, copy: bool = True) -> None:

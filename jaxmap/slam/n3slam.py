@@ -95,6 +95,17 @@ def default_tracker(min_valid_fraction: float):
     return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
 
 
+def show_loop(viewer, fe: FrontEnd, r) -> None:
+    """After a pose-graph optimisation (front-end result r): the viewer (None: none) redraws the
+    trajectory and marks the loop just closed."""
+    if viewer is None:
+        return
+    viewer.on_trajectory(fe.trajectory())
+    if fe.loops:
+        c, k = fe.loops[-1]
+        viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
+
+
 def pose_moved(a: np.ndarray, b: np.ndarray) -> float:
     """Distance (m) between the positions of two poses [4,4]."""
     return float(np.linalg.norm(np.asarray(a)[:3, 3] - np.asarray(b)[:3, 3]))
@@ -183,13 +194,7 @@ class N3SlamStep:
         return record, r.pose
 
     def _show_loop(self, r) -> None:
-        """The viewer redraws the trajectory and marks the loop (as `jaxmap.slam.run.FrontEndStep` does)."""
-        if self.viewer is None:
-            return
-        self.viewer.on_trajectory(self.fe.trajectory())
-        if self.fe.loops:
-            c, k = self.fe.loops[-1]
-            self.viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
+        show_loop(self.viewer, self.fe, r)
 
     def _map(self, i: int, pose: np.ndarray, **kw) -> dict:
         """Map frame i (of this run) at world pose [4, 4]; notes where its pairs went (submap, number, pose

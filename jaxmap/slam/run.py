@@ -45,7 +45,7 @@ from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.slam.frontend import FrontEnd
-from jaxmap.slam.n3slam import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend
+from jaxmap.slam.n3slam import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend, show_loop
 from jaxmap.slam.odometry_common import Scan
 from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_trajectory
 
@@ -83,11 +83,8 @@ class FrontEndStep:
         record = dict(r.timings, kf=len(mapper.store), loops=len(self.loops), ok=r.odometry_ok)
         if r.is_keyframe and mapper.timings:
             record.update({k: v for k, v in mapper.timings[-1].items() if k.endswith("_s")})
-        if self.viewer is not None and r.optimized:
-            self.viewer.on_trajectory(self.fe.trajectory())
-            if self.fe.loops:
-                c, k = self.fe.loops[-1]
-                self.viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
+        if r.optimized:
+            show_loop(self.viewer, self.fe, r)
         return record, r.pose
 
 
