@@ -214,8 +214,11 @@ class SlamConfig:
             return {**{k: why for k in ("preprocess", "map", "mesh", "eval")},
                     "mesh_at_loops": "mesh_at_loops meshes the imt map at loops; with map_kind n3 it is not used"}
         why = f"{{}} is read with map_kind n3 only (this run's map_kind is {self.map_kind})"
-        return {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_loop",
-                                             "n3_loop_min_move_m", "n3_submap_m")}
+        out = {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_loop",
+                                            "n3_loop_min_move_m", "n3_submap_m")}
+        if not self.n3_config:
+            out["n3_set"] = "n3_set sets keys of n3_config's N3 map, and this run has none (n3_config is empty)"
+        return out
 
     def imt(self) -> ImtConfig:
         return ImtConfig(data=self.data, preprocess=self.preprocess, map=self.map, mesh=self.mesh, eval=self.eval,
