@@ -12,11 +12,11 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
   4. when a loop is accepted and the pose graph moves the frames, the map follows (`n3_loop`):
      `submaps`: the map is a chain of submaps (`SubmapMapper`, a new one every `n3_submap_m`, each pass
      through a street its own), and each submap is moved as a rigid body to the pose that fits its frames'
-     corrections best (`submap_poses`: no re-training; the passes of a loop are blended, not trained into
+     corrections best (`submap_pose`: no re-training; the passes of a loop are blended, not trained into
      one grid); the frames of the submap being mapped that still moved against it by more than
      `n3_loop_min_move_m` are re-added, one after each of the next frames (in the background of the loop,
-     not all at once); `rebuild` empties the map and integrates every frame so far again at its optimised pose (when
-     any frame moved more than `n3_loop_min_move_m`); `moved` removes the stored training pairs of
+     not all at once); `rebuild` empties the map and integrates every frame so far again at its
+     optimised pose (when any frame moved more than `n3_loop_min_move_m`); `moved` removes the stored training pairs of
      the frames whose position moved more than that (`N3Mapper.forget_frames`) and adds those frames
      again, into the map as it is; `none` leaves the map as mapped (an ablation). docs/slam.md has the
      measurements that chose between them.
