@@ -253,3 +253,23 @@ def test_a_drive_back_takes_up_its_old_submap_again(tmp_path):
     (s, v), (s1, v1) = m.sdf(q), one.sdf(q)
     err, err1 = np.median(np.abs(s - 0.1)), np.median(np.abs(s1 - 0.1))
     assert v.all() and err <= 1.5 * err1 + 0.01, (err, err1)
+
+
+def test_mapping_at_given_poses_makes_a_map_of_submaps(small_city, tmp_path):
+    """`map_at_poses` (the N3 map `jaxmap slam` builds offline at its optimised poses) with submaps.enabled
+    maps into submaps, placed at the given poses (it refused: N3Mapper maps one grid)."""
+    from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.n3.run import map_at_poses
+
+    cfg = load_config("configs/city.yaml", SMALL + ["submaps.enabled=true", "submaps.length_m=2", "train.iters=10",
+                                                    f"data.path={small_city}", "data.end_frame=6",
+                                                    f"output={tmp_path}"])
+    seq = open_run_sequence(cfg)
+    m, loop = map_at_poses(cfg, seq, np.asarray(seq.poses), progress=False)
+    assert isinstance(m, SubmapMapper) and len(m.submaps.infos) >= 2 and loop.frames_run == 6
+    assert (tmp_path / "submaps").is_dir()
+    T = np.asarray(seq.poses[5])
+    pts = seq.frame(5).points[::20]
+    pts = pts[np.linalg.norm(pts, axis=1) < 8.0]
+    s, v = m.sdf(pts @ T[:3, :3].T + T[:3, 3])
+    assert v.mean() > 0.8 and np.median(np.abs(s[v])) < 0.05, (v.mean(), np.median(np.abs(s[v])))

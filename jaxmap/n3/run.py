@@ -138,15 +138,16 @@ def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None, 
 def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
     """A new N3 map of every frame of `seq` at `poses` [N, 4, 4] (instead of the sequence's), the frames
     read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
-    (no checkpoints). Returns (N3Mapper, frame_loop.LoopResult)."""
+    (no checkpoints); a map of submaps with `submaps.enabled`. Returns (N3Mapper, frame_loop.LoopResult)."""
     cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))
     if len(seq):
         cfg = scan.resolve_layout(cfg, seq.frame(0).points)
-    mapper = N3Mapper(cfg)
+    mapper = new_mapper(cfg, cfg.output)  # (with submaps.enabled, written to cfg.output's submaps/)
     if len(seq):
         mapper.place_origin(poses[0])
-    frames = Prefetcher(seq, 0, len(seq), _loader(cfg, poses=poses),
-                        then=scan.Uploader(mapper.origin, cfg.preprocess.device == "true"))
+    uploader = scan.Uploader(mapper.origin, cfg.preprocess.device == "true")
+    mapper.follow(uploader)
+    frames = Prefetcher(seq, 0, len(seq), _loader(cfg, poses=poses), then=uploader)
     return mapper, run_frames(frames, MapSteps(mapper), total=len(seq), progress=Progress(desc, progress))
 
 
