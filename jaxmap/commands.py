@@ -209,7 +209,6 @@ def slam_config(args):
     """`jaxmap slam`'s config: `--set n3.<key>=<value>` goes to n3_set (the N3 map's config); a `--set` of a
     key the run would not read with its map kind is refused, naming the key (`SlamConfig.unused`)."""
     import argparse
-    import dataclasses
 
     from jaxmap.config import ConfigError, SlamConfig
     from jaxmap.slam.n3slam import n3_map_config

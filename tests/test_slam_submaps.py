@@ -107,6 +107,8 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     for i in bent:
         np.testing.assert_allclose(m.submaps.infos[last].pose @ step.mapped_at[i], traj[i], atol=1e-9)
         assert step.submap[i] == last
+    # a frame added again is on the submap's path once (appended again, it would lengthen the path driven)
+    assert len(m.submaps.infos[last].path) == int(np.sum(sub == last))
 
 
 def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small_noisy_city, tmp_path, monkeypatch,

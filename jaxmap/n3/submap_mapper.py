@@ -31,7 +31,7 @@ class SubmapMapper(N3Mapper):
 
     def __init__(self, cfg=None, state=None, timings=None, first_scan=None, first_frame=None, *,
                  directory: str | None = None, index: dict | None = None):
-        self._subs, self._uploader, self._next_pose = None, None, None
+        self._subs, self._uploader, self._next_pose, self._again = None, None, None, False
         super().__init__(cfg, state, timings, first_scan=first_scan, first_frame=first_frame)
         self._local = self.frames          # frames submitted to the active submap's state (its own count)
         self._local_of: dict[int, int] = {}  # frame (the whole map's count) -> its count in its submap
@@ -69,7 +69,7 @@ class SubmapMapper(N3Mapper):
         pose = np.asarray(prepared[2] if pose is None else pose, np.float64)
         if self.frames and not stay:
             self._enter(pose)
-        self._next_pose = pose  # for `submit`, which `N3Mapper.add_frame` calls
+        self._next_pose, self._again = pose, stay  # for `submit`, which `N3Mapper.add_frame` calls
         local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
         if prepared is not None:
             prepared = (prepared[0], prepared[1], local, *prepared[3:])
@@ -90,7 +90,8 @@ class SubmapMapper(N3Mapper):
                              "add_frame (which places the pose in the submap's frame)")
         if origin is not None and not np.array_equal(np.asarray(origin, np.float64), self._origin):
             batch = shift(batch, (np.asarray(origin, np.float64) - self._origin).astype(np.float32))
-        self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames)
+        self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames, again=self._again)
+        self._again = False
         self._local_of[self.frames] = self._local
         self._local += 1
         return super().submit(batch, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s)

@@ -191,10 +191,12 @@ class Submaps:
         features are untouched, every reading of it (queries, mesh, paths, anchor) follows the pose."""
         self.infos[k].pose = np.asarray(pose, np.float64).copy()
 
-    def record(self, position_w: np.ndarray, frame: int) -> None:
-        """The active submap maps the frame at sensor position_w [3] (world)."""
+    def record(self, position_w: np.ndarray, frame: int, again: bool = False) -> None:
+        """The active submap maps the frame at sensor position_w [3] (world); again: a frame of it added
+        again (its position is on the path already: appended, it would lengthen the path driven)."""
         info = self.infos[self.active]
-        info.path.append(to_local(info.pose, np.asarray(position_w, np.float64)[None])[0])
+        if not again:
+            info.path.append(to_local(info.pose, np.asarray(position_w, np.float64)[None])[0])
         info.frames.append(int(frame))
 
     def park(self, k: int, state: N3State) -> None:
