@@ -184,7 +184,7 @@ class N3SlamStep:
             if r.optimized:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
-                self._show_loop(r)
+                show_loop(self.viewer, self.fe, r)
             if self.pending:  # one a frame; the last frame re-adds those left (the map is finished with it)
                 record["readd_s"] = self.readd_pending(len(self.pending) if frame.position >= self.last else 1)
             self.records.append(record)
@@ -192,9 +192,6 @@ class N3SlamStep:
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
             raise JaxmapError(f"jaxmap slam (map_kind n3) failed at frame {frame.index}: {type(e).__name__}: {e}") from e
         return record, r.pose
-
-    def _show_loop(self, r) -> None:
-        show_loop(self.viewer, self.fe, r)
 
     def _map(self, i: int, pose: np.ndarray, **kw) -> dict:
         """Map frame i (of this run) at world pose [4, 4]; notes where its pairs went (submap, number, pose
