@@ -244,6 +244,12 @@ def _bench_args(sub) -> None:
     p.add_argument("--cities", default=None,
                    help="n3 --suite: comma-separated subset of the suite's cities (the variant's other rows in "
                         "OUT/suite.json are kept)")
+    p.add_argument("--profile", action="store_true",
+                   help="n3 --only speed: where a frame's time goes, stage by stage: the frame program under XLA's profiler "
+                        "(summed by stage), what each feature costs in it, and the host's preprocessing")
+    p.add_argument("--profile-at", type=int, default=40, help=argparse.SUPPRESS)
+    p.add_argument("--profile-frames", type=int, default=5, help=argparse.SUPPRESS)
+    p.add_argument("--profile-rounds", type=int, default=5, help=argparse.SUPPRESS)
     p.add_argument("--quick", action="store_true",
                    help="gpu: the small city and room, a few frames each (checks that the whole bench runs)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

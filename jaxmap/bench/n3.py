@@ -11,6 +11,10 @@ before meshing) and of the whole process.
 Quality: jaxmap against the TSDF baseline and the N3 paper's ablations (Table III), one row each:
 Acc / Comp / C-L1 / Comp. ratio / F-score at 10 cm within the 20 m the mapper sees.
 
+`--only speed --profile`: where a frame's time goes, stage by stage (`jaxmap.bench.n3_profile`: the frame
+program under XLA's profiler, summed by its named scopes; what each feature costs in it; the host's
+preprocessing).
+
 `--only memory`: where the bytes are (`jaxmap.bench.n3_memory`), for the host and the device preprocessing.
 
 `--long`: the 1.1 km drive of `jaxmap synth city --long` (1025 frames): per-frame medians over
@@ -116,14 +120,13 @@ def main(args) -> int:
         print(f"[bench] synthesizing the default city into {data}")
         generate_city(data, seed=0)
     base = base_overrides(args, data)[1:]  # the data path goes on the command line
-    names = list(DEFAULT_VARIANTS) if not args.only else [v.strip() for v in args.only.split(",")]
-    for name in names:
-        if name not in VARIANTS and name not in ("tsdf", "speed", "memory"):
-            raise SystemExit(f"unknown variant {name!r}; choose from speed, memory, tsdf, {', '.join(VARIANTS)}")
+    names = _variant_names(args.only)
     if names == ["memory"]:
         from jaxmap.bench.n3_memory import main as main_memory
 
         return main_memory(args, data, base, VARIANTS)
+    if getattr(args, "profile", False) and _profile(args, data, base, names):
+        return 0
     results, speed = {}, {}
 
     if not args.only or "speed" in names or "jaxmap" in names:
@@ -159,6 +162,24 @@ def main(args) -> int:
         print(f"\nC-L1 jaxmap / TSDF = {a['chamfer_l1_cm'] / b['chamfer_l1_cm']:.3f}; "
               f"F-score jaxmap {a['f_score']:.2f} % vs TSDF {b['f_score']:.2f} %")
     return 0
+
+
+def _profile(args, data: str, base: list[str], names: list[str]) -> bool:
+    """`--profile`: the per-stage profile (`jaxmap.bench.n3_profile`); True when it is all that was asked
+    (`--only speed --profile`)."""
+    from jaxmap.bench.n3_profile import main_profile
+
+    main_profile(args, data, base)
+    return names == ["speed"]
+
+
+def _variant_names(only: str | None) -> list[str]:
+    """The variants `--only` names (default all), each checked."""
+    names = list(DEFAULT_VARIANTS) if not only else [v.strip() for v in only.split(",")]
+    for name in names:
+        if name not in VARIANTS and name not in ("tsdf", "speed", "memory"):
+            raise SystemExit(f"unknown variant {name!r}; choose from speed, memory, tsdf, {', '.join(VARIANTS)}")
+    return names
 
 
 def _quality_row(s: dict) -> dict:

@@ -117,7 +117,7 @@ class WindowConfig:
     carve: bool = True               # free space along the ray replaces the stored pairs it contradicts
                                      # (needs sampling.free_ray_n > 0): erases what moved away
     carve_margin_m: float = 0.05     # a stored pair is contradicted when its label < free label - distance - this
-    carve_samples: int = 16384       # at most this many ray samples carve per frame (a fixed-size gather)
+    carve_samples: int = 16384       # at most this many usable ray samples a frame train and carve (fixed-size buffers)
     carve_rule: str = "replace"      # "replace": a free sample takes the place of the pair it contradicts most;
                                      # "raise": every contradicted pair's label rises to the Lipschitz bound
     carve_sign: bool = False         # also: every ray sample (it is outside every object) raises the pairs stored
@@ -132,8 +132,8 @@ class EvidenceConfig:
     margin_m: float = 0.1            # a voxel is seen free when every return near its direction lies beyond its
                                      # far side by this (pose and range error; DUFOMap's margin)
     void_frames: int = 1             # frames seen free since the last hit that make a voxel void
-    max_range_m: float = 40.0        # voxels within this of the sensor are tested each frame (up to 262,144 of
-                                     # them; more: a different part each frame)
+    max_range_m: float = 40.0        # voxels within this of the sensor are tested each frame (those their own
+                                     # pixel may free, up to 65,536; more: a different part each frame)
     raise_pairs: bool = True         # the pairs stored in a voxel that turns void are raised to >= margin_m
 
 

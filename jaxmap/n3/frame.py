@@ -57,7 +57,7 @@ def step(static: N3Static, state: N3State, scan: ScanBatch):
 def step_raw(static: N3Static, state: N3State, raw: RawScan, rows: int):
     """`step` of a raw scan: preprocessing, integrate and train in one compiled program. When the
     preprocessed scan has more points than `rows`, nothing is stored or trained (`scan_overflow`)."""
-    scan, kept, overflow = prepare_scan(static, raw, rows)
+    scan, kept, overflow = jax.named_call(prepare_scan, name="preprocess")(static, raw, rows)
     key, k_sample, k_train = jax.random.split(state.key, 3)
     state, fstats = integrate(static, state, scan, k_sample, fits=~overflow)
     state, tstats = train(static, state, k_train, active=fstats.ok)
@@ -87,6 +87,20 @@ def step_after(static: N3Static, state: N3State, batch, prev_ok, rows: int = 0):
 # ---------------------------------------------------------------------------------------------
 # growth (host side, outside jit)
 # ---------------------------------------------------------------------------------------------
+
+
+GROW_TOGETHER = 0.6  # a table this full grows when another one must (one compile for both)
+
+
+def grow_together(caps: Capacities, sizes: tuple, used: tuple) -> tuple:
+    """(voxel rows, feature rows, store blocks) to grow to: `sizes`, those each table needs, and when any
+    of them grows, also double those of the others that are more than GROW_TOGETHER full (`used`: their
+    rows / blocks in use). Every growth compiles the frame program again (15-25 s on a 2-core CPU): a
+    table that would soon grow on its own grows with the one that must, one compile for both."""
+    now = (caps.voxel_rows, caps.feature_rows, caps.store_blocks)
+    if tuple(sizes) == now:
+        return now
+    return tuple(max(size, 2 * cap) if n > GROW_TOGETHER * cap else size for size, cap, n in zip(sizes, now, used))
 
 
 def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, feature_std: float,
@@ -122,6 +136,9 @@ def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, fea
     b_need = used + headroom.get("blocks", 0)
     while b_need > blocks or (bool(stats.store_overflow) and blocks == caps.store_blocks):
         blocks *= 2
+    v_rows, r_rows, blocks = grow_together(caps, (v_rows, r_rows, blocks), (voxels, rows, used))
+    v_slots = max(caps.voxel_slots, pow2(v_rows / static.max_load))
+    c_slots = max(caps.corner_slots, pow2(r_rows / static.max_load))
     if v_rows != caps.voxel_rows:
         log.info("growing the voxel table %d -> %d voxels (%d in use)", caps.voxel_rows, v_rows, voxels)
         state = state.replace(

@@ -10,18 +10,21 @@ frame is fully in; the host then grows what the stats name and runs the frame ag
 """
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
+import flax.struct
 import jax
 import jax.numpy as jnp
 
 from jaxmap import range_image
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
+from jaxmap.grid.compaction import nonzero_fixed
 from jaxmap.n3 import evidence as n3evidence
 from jaxmap.n3 import pool, window
 from jaxmap.n3.query import query
-from jaxmap.n3.sampling import sample_frame
+from jaxmap.n3.sampling import Samples, sample_frame
 from jaxmap.n3.scan_batch import ScanBatch
 from jaxmap.n3.state import N3State, N3Static
 
@@ -51,9 +54,11 @@ class FrameStats(NamedTuple):
     voxels_free: jax.Array      # [] int32 voxels this frame saw free
     voxels_void: jax.Array      # [] int32 void voxels after the frame
     voxels_raised: jax.Array    # [] int32 voxels whose stored pairs were raised this frame (they turned void)
+    rays_left: jax.Array        # [] int32 usable ray samples beyond `carve_samples` (not used this frame)
     kept: jax.Array             # [N] bool the scan points that got training samples
 
 
+@functools.partial(jax.named_call, name="screen")
 def filter_moved_points(static: N3Static, state: N3State, scan: ScanBatch) -> tuple[ScanBatch, jax.Array]:
     """PIN-SLAM's dynamic filter: a scan point where the map, as trained so far, is confidently free
     (SDF above `point_filter` in a voxel whose block holds at least Nt pairs: only voxels near
@@ -72,6 +77,7 @@ def filter_moved_points(static: N3Static, state: N3State, scan: ScanBatch) -> tu
     return scan._replace(valid=scan.valid & ~drop), jnp.sum(drop, dtype=jnp.int32)
 
 
+@functools.partial(jax.named_call, name="screen")
 def drop_void_points(static: N3Static, state: N3State, scan: ScanBatch):
     """Scan points that land in void voxels (`jaxmap.n3.evidence`: seen free since their last hit) get no
     samples: they are on something that moves, or a sensor artifact. Returns (scan with those points
@@ -84,6 +90,7 @@ def drop_void_points(static: N3Static, state: N3State, scan: ScanBatch):
     return scan._replace(valid=scan.valid & ~drop), rows, jnp.sum(drop, dtype=jnp.int32)
 
 
+@functools.partial(jax.named_call, name="evidence")
 def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, voxel_coord, n_voxels, frame, ok):
     """This frame's free-space evidence (`jaxmap.n3.evidence`): the voxels its range image saw free count
     one more frame, the voxels its points hit (point_rows [N], those dropped as void too) start again;
@@ -91,19 +98,27 @@ def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, vo
     retried). Returns (evidence, store, [] int32 voxels seen free, [] int32 voxels raised)."""
     v = ev.free_run.shape[0]
     hit = jnp.zeros((v,), bool).at[jnp.where(point_rows >= 0, point_rows, v)].set(True, mode="drop")
-    levels = range_image.footprint_levels(range_image.dropouts_block(scan.image, static.image, jnp), static.image, jnp)
+    with jax.named_scope("image"):
+        blocked = range_image.dropouts_block(scan.image, static.image, jnp)
+        levels = range_image.footprint_levels(blocked, static.image, jnp)
     offset = (frame * n3evidence.TESTED_PER_FRAME) % v
-    rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset)
-    coords = voxel_coord[jnp.minimum(rows, v - 1)]
-    free = (rows < v) & n3evidence.seen_free(coords, static.leaf, levels, static.image, scan.rotation, scan.sensor,
-                                             static.evidence_margin, static.free_min_range)
-    ev = n3evidence.observe(ev, rows, free, hit, ok)
+    with jax.named_scope("candidates"):
+        rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset)
+    with jax.named_scope("test"):
+        coords = voxel_coord[jnp.minimum(rows, v - 1)]
+        free = (rows < v) & n3evidence.seen_free(coords, static.leaf, levels, static.image, scan.rotation, scan.sensor,
+                                                 static.evidence_margin, static.free_min_range)
+    with jax.named_scope("observe"):
+        ev = n3evidence.observe(ev, rows, free, hit, ok)
     n_raised = jnp.zeros((), jnp.int32)
     if static.raise_pairs and not static.uses_pool:
-        ev, store, n_raised = n3evidence.raise_void_pairs(ev, store, static.void_frames, static.evidence_margin, ok)
+        with jax.named_scope("raise"):
+            ev, store, n_raised = n3evidence.raise_void_pairs(ev, store, static.void_frames, static.evidence_margin,
+                                                              ok)
     return ev, store, jnp.sum(free & ~hit[jnp.minimum(rows, v - 1)], dtype=jnp.int32), n_raised
 
 
+@functools.partial(jax.named_call, name="allocate")
 def allocate_voxels(static: N3Static, state: N3State, vkeys, valid, vox):
     """Leaf voxels where near-surface samples land (all feature levels at once).
     vkeys: [n, ns + nf, 4] voxel keys of the samples; valid: [n, ns + nf]; vox: [n * (ns + nf), 3].
@@ -118,6 +133,7 @@ def allocate_voxels(static: N3Static, state: N3State, vkeys, valid, vox):
     return voxels, surf_rows, v_over, n_new_v, voxel_coord
 
 
+@functools.partial(jax.named_call, name="allocate")
 def allocate_voxel_corners(static: N3Static, state: N3State, voxels: hashing.HashTable, voxel_coord):
     """Corner rows for up to `new_voxels_per_pass` voxels that have none yet (a queue: rows are handed
     out in order, so those voxels are rows [voxels_with_corners, count)).
@@ -137,6 +153,7 @@ def allocate_voxel_corners(static: N3Static, state: N3State, voxels: hashing.Has
     return corners, voxel_corner_rows, done, voxels.count - done, c_over, n_new_c
 
 
+@functools.partial(jax.named_call, name="pairs")
 def free_sample_rows(static: N3Static, state: N3State, voxels: hashing.HashTable, vkeys, valid, surf_rows):
     """Voxel rows of the free-space samples. They train where their leaf voxel has features; elsewhere
     they would only train the decoder's empty-space output (counted in the stats, not silently lost).
@@ -164,50 +181,114 @@ def free_sample_rows(static: N3Static, state: N3State, voxels: hashing.HashTable
     return free_rows, free_ok, ray_ok, ray_any
 
 
-def carve_store(static: N3Static, state: N3State, store: window.PairStore, samples, free_rows, ray_ok, ray_any,
-                stored, key):
-    """Let the frame's ray samples change the stored pairs they contradict (`window.carve`), once the
-    frame's pairs are stored (stored: [] bool). Returns (store, [] int32 pairs changed)."""
-    n = free_rows.shape[0]
-    ns, nf = static.n_surface, free_rows.shape[1]
-    lab = samples.labels.reshape(n, ns + nf)[:, ns + static.n_free:].reshape(-1)
-    pts = samples.points.reshape(n, ns + nf, 3)[:, ns + static.n_free:].reshape(-1, 3)
+@flax.struct.dataclass
+class FramePairs:
+    """A frame's training pairs as the store takes them: every near-surface and band sample ([n, ns + nb]
+    flattened, point by point), then at most `carve_samples` usable ray samples, compacted (most ray samples
+    land in no allocated voxel, or in one a frame hit lately: a few hundred of 350,000 are usable on a
+    static street, a few thousand with traffic; the store would sort them all)."""
+
+    rows: jax.Array      # [M] int32 voxel row of each pair (-1: none), M = n * (ns + nb) + B
+    vox: jax.Array       # [M, 3] int32 leaf voxel of each pair
+    samples: Samples     # [M] the pairs' points, labels, surface flags
+    rays_left: jax.Array # [] int32 usable ray samples beyond the budget (a different part of the scan next frame)
+    budget: int = flax.struct.field(pytree_node=False, default=0)  # B: the ray samples are the last B
+
+    @property
+    def ray(self) -> slice:
+        m = self.rows.shape[0]
+        return slice(m - self.budget, m)
+
+
+def ray_pick(ok, budget: int, key):
+    """Indices [budget] into ok.reshape(-1) ([n, r] bool) of at most `budget` True entries, in scan order
+    from a random start (so that over frames every part of the scan is used); n * r where none."""
+    flat = ok.reshape(-1)
+    total = flat.shape[0]
+    start = jax.random.randint(key, (), 0, total)
+    pick = nonzero_fixed(jnp.roll(flat, -start), budget, total)
+    return jnp.where(pick < total, (pick + start) % total, total)
+
+
+@functools.partial(jax.named_call, name="pairs")
+def frame_pairs(static: N3Static, samples: Samples, vox, valid, surf_rows, free, key) -> FramePairs:
+    """The pairs of a frame (`FramePairs`) from its samples ([n * (ns + nf)], `sample_frame`'s order), their
+    leaf voxels vox [n * (ns + nf), 3], valid [n, ns + nf], the surface samples' rows [n * ns] and
+    `free_sample_rows`'s (rows, usable, ray_ok, ray_any)."""
+    n, ns, nb, nr = valid.shape[0], static.n_surface, static.n_free, static.n_ray
+    k = ns + nb
+    free_rows, free_ok, ray_ok, _ = free
+    rows = jnp.concatenate([jnp.where(valid[:, :ns], surf_rows.reshape(n, ns), -1),
+                            jnp.where(free_ok[:, :nb], free_rows[:, :nb], -1)], axis=1).reshape(-1)
+
+    def part(x, lo, hi):
+        return x.reshape((n, k + nr) + x.shape[1:])[:, lo:hi].reshape((-1,) + x.shape[1:])
+
+    arrays = [vox, samples.points, samples.labels, samples.surface, samples.valid]
+    head = [part(x, 0, k) for x in arrays]
+    budget = min(static.carve_samples, n * nr)
+    rays_left = jnp.zeros((), jnp.int32)
+    if budget:
+        pick = ray_pick(ray_ok, budget, jax.random.fold_in(key, 4))
+        real = pick < n * nr
+        at = jnp.minimum(pick, n * nr - 1)
+        rows = jnp.concatenate([rows, jnp.where(real, free_rows[:, nb:].reshape(-1)[at], -1)])
+        head = [jnp.concatenate([h, part(x, k, k + nr)[at]]) for h, x in zip(head, arrays)]
+        rays_left = jnp.sum(ray_ok, dtype=jnp.int32) - jnp.sum(real, dtype=jnp.int32)
+    vox, pts, labels, surface, ok = head
+    return FramePairs(rows, vox, Samples(pts, labels, surface, ok), rays_left, budget)
+
+
+@functools.partial(jax.named_call, name="carve")
+def carve_store(static: N3Static, state: N3State, store: window.PairStore, pairs: FramePairs, ray_any, free_rows,
+                samples: Samples, stored, key):
+    """Let the frame's usable ray samples (`FramePairs`) change the stored pairs they contradict
+    (`window.carve`), once the frame's pairs are stored (stored: [] bool); with `carve_sign` also every ray
+    sample in an allocated voxel (ray_any [n, n_ray], free_rows [n, nf], samples: the frame's). Returns
+    (store, [] int32 pairs changed)."""
+    r = pairs.ray
+    rows = pairs.rows[r]
     store, carved = window.carve(
-        store, jnp.where(ray_ok, free_rows[:, static.n_free:], -1).reshape(-1), pts, lab,
-        ray_ok.reshape(-1) & stored, state.frame, jax.random.fold_in(key, 2), margin=static.carve_margin,
-        max_samples=static.carve_samples, quiet_frames=static.ray_quiet, rule=static.carve_rule)
+        store, rows, pairs.samples.points[r], pairs.samples.labels[r], (rows >= 0) & stored, state.frame,
+        jax.random.fold_in(key, 2), margin=static.carve_margin, max_samples=static.carve_samples,
+        quiet_frames=static.ray_quiet, rule=static.carve_rule)
     if static.carve_sign:
         # The one thing every ray sample is sure of is its sign: the ray passed through it, so it
         # is outside every object, f(y) > 0, and f(x) > -|x - y| nearby. A pair stored deeper
         # inside than that is gone, whatever hit the voxel lately (no quiet rule needed).
+        n = free_rows.shape[0]
+        ns, nf = static.n_surface, free_rows.shape[1]
+        pts = samples.points.reshape(n, ns + nf, 3)[:, ns + static.n_free:].reshape(-1, 3)
         store, signed = window.carve(
             store, jnp.where(ray_any, free_rows[:, static.n_free:], -1).reshape(-1), pts,
-            jnp.zeros_like(lab), ray_any.reshape(-1) & stored, state.frame, jax.random.fold_in(key, 3),
-            margin=static.carve_margin, max_samples=static.carve_samples, quiet_frames=-1, rule="raise")
+            jnp.zeros((pts.shape[0],), jnp.float32), ray_any.reshape(-1) & stored, state.frame,
+            jax.random.fold_in(key, 3), margin=static.carve_margin, max_samples=static.carve_samples,
+            quiet_frames=-1, rule="raise")
         carved = carved + signed
     return store, carved
 
 
-def store_pairs(static: N3Static, state: N3State, rows, vox, samples, allowed, center, key, free):
-    """The frame's pairs (voxel rows [n * (ns + nf)], -1: none) into the pair store (sliding the window
-    around `center` and carving), or the flat pool of the replay / keyframe ablations.
-    free: (free rows, usable, ray_ok, ray_any) of `free_sample_rows`.
+def store_pairs(static: N3Static, state: N3State, pairs: FramePairs, samples: Samples, allowed, center, key, free):
+    """The frame's pairs (`FramePairs`) into the pair store (sliding the window around `center` and
+    carving), or the flat pool of the replay / keyframe ablations. samples: the frame's own
+    (`sample_frame`); free: `free_sample_rows`'s (rows, usable, ray_ok, ray_any).
     Returns (store, pool, ok [], needed [], free blocks [], pairs held [], carved [])."""
     carved = jnp.zeros((), jnp.int32)
+    p = pairs.samples
     if static.uses_pool:  # the replay / keyframe ablations: the frame's pairs go to the flat pool
-        new_pool, pst = pool.update(state.pool, rows, samples.points, samples.labels, samples.surface,
+        new_pool, pst = pool.update(state.pool, pairs.rows, p.points, p.labels, p.surface,
                                     state.frame, allowed, keyframes=static.keyframes)
         zero = jnp.zeros((), jnp.int32)
         return state.store, new_pool, pst.ok, pst.needed, zero, new_pool.n, carved
-    store, ids, n_win, sst = window.update(
-        state.store, rows, vox, samples.points, samples.labels, samples.surface, state.frame, center, allowed,
+    store, ids, n_win, sst = jax.named_call(window.update, name="store")(
+        state.store, pairs.rows, pairs.vox, p.points, p.labels, p.surface, state.frame, center, allowed,
         jax.random.fold_in(key, 1), radius_vox=static.radius_vox, policy=static.block_policy,
         pairs_per_frame=static.pairs_per_frame)
     store = store.replace(window_ids=jnp.where(sst.ok, ids, state.store.window_ids),
                           window_n=jnp.where(sst.ok, n_win, state.store.window_n))
     if static.carve and static.n_ray:
-        free_rows, _, ray_ok, ray_any = free
-        store, carved = carve_store(static, state, store, samples, free_rows, ray_ok, ray_any, sst.ok, key)
+        free_rows, _, _, ray_any = free
+        store, carved = carve_store(static, state, store, pairs, ray_any, free_rows, samples, sst.ok, key)
     return store, None, sst.ok, sst.blocks_needed, sst.blocks_free, window.total_pairs(store), carved
 
 
@@ -224,7 +305,7 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     point_rows = n_void = None
     if static.evidence:
         scan, point_rows, n_void = drop_void_points(static, state, scan)
-    samples = sample_frame(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
+    samples = jax.named_call(sample_frame, name="sample")(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
                            trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=static.n_free,
                            free_band=static.free_band, free_label=static.free_label,
                            free_label_mode=static.free_label_mode, n_ray=static.n_ray,
@@ -236,13 +317,12 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     corners, voxel_corner_rows, done, pending, c_over, n_new_c = allocate_voxel_corners(
         static, state, voxels, voxel_coord)
     free = free_sample_rows(static, state, voxels, vkeys, valid, surf_rows)
-    free_rows, free_ok = free[:2]
-    rows = jnp.concatenate([jnp.where(valid[:, :ns], surf_rows.reshape(n, ns), -1),
-                            jnp.where(free_ok, free_rows, -1)], axis=1).reshape(-1)
+    free_rows = free[0]
+    frame = frame_pairs(static, samples, vox, valid, surf_rows, free, key)
     allowed = ~v_over & ~c_over & (pending == 0) & fits
     center = gfeat.leaf_voxel(scan.sensor[None], static.leaf)[0]
     store, new_pool, ok, needed, free_blocks, pairs, carved = store_pairs(
-        static, state, rows, vox, samples, allowed, center, key, free)
+        static, state, frame, samples, allowed, center, key, free)
     zero = jnp.zeros((), jnp.int32)
     ev, n_free, n_raised = state.evidence, zero, zero
     if static.evidence:
@@ -260,6 +340,6 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
         store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
         carved=carved, points_filtered=n_filtered, scan_points=jnp.sum(scan.valid, dtype=jnp.int32),
         scan_overflow=~fits, points_void=zero if n_void is None else n_void, voxels_free=n_free,
-        voxels_void=n_void_voxels, voxels_raised=n_raised, kept=scan.valid,
+        voxels_void=n_void_voxels, voxels_raised=n_raised, rays_left=frame.rays_left, kept=scan.valid,
     )
     return state, stats

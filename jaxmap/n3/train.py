@@ -16,12 +16,22 @@ from jaxmap.n3.field import n3_loss
 from jaxmap.n3.state import N3State, N3Static
 
 
+def _batch(static: N3Static, state: N3State, store, ids, n, key):
+    """One iteration's batch: from the flat pool (replay / keyframe ablations), hierarchical or uniform."""
+    if static.uses_pool:
+        return hierarchical.sample_pool(key, state.pool, state.voxel_coord, batch=static.batch_size)
+    if static.hierarchical:
+        return hierarchical.sample_hierarchical(key, store, ids, n, nv=static.nv, np_=static.np_per_voxel, nt=static.nt)
+    return hierarchical.sample_uniform(key, store, ids, n, batch=static.batch_size)
+
+
 class TrainStats(NamedTuple):
     loss: jax.Array     # [] mean over the K iterations
     bce: jax.Array
     eikonal: jax.Array
 
 
+@functools.partial(jax.named_call, name="train")
 def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, TrainStats]:
     """K iterations of (hierarchical) batch selection, loss and Adam over the current window.
 
@@ -55,24 +65,20 @@ def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, 
     def body(_, carry):
         table, f_opt, dec, d_opt, key, acc = carry
         key, k = jax.random.split(key)
-        if static.uses_pool:
-            b = hierarchical.sample_pool(k, state.pool, state.voxel_coord, batch=static.batch_size)
-        elif static.hierarchical:
-            b = hierarchical.sample_hierarchical(k, store, ids, n, nv=static.nv, np_=static.np_per_voxel,
-                                                 nt=static.nt)
-        else:
-            b = hierarchical.sample_uniform(k, store, ids, n, batch=static.batch_size)
-        rows = state.voxel_corner_rows[jnp.maximum(b.voxel_rows, 0)]                     # [G, L*8]
-        feats = table[jnp.maximum(rows, 0)]                                              # [G, L*8, D]
-        (loss, (l_bce, l_eik)), (g_feat, g_dec) = loss_grad(feats, dec, b, b.coords, h.beta,
-                                                             h.weight_e)
-        upd, f_opt = opt.update(adam.SparseGrads(rows.reshape(-1), g_feat.reshape(-1, table.shape[-1])), f_opt)
-        table = adam.apply_updates(table, upd)
-        # The decoder's state is optax.adam's first part (scale_by_adam); its learning-rate part has none.
-        upd, (d_opt_new, _) = dec_tx.update(g_dec, (d_opt, optax.EmptyState()), dec)
-        dec_new = optax.apply_updates(dec, upd)
-        dec, d_opt = jax.tree_util.tree_map(lambda a, b: jnp.where(train_decoder, a, b), (dec_new, d_opt_new),
-                                            (dec, d_opt))
+        with jax.named_scope("batch"):
+            b = _batch(static, state, store, ids, n, k)
+            rows = state.voxel_corner_rows[jnp.maximum(b.voxel_rows, 0)]                 # [G, L*8]
+            feats = table[jnp.maximum(rows, 0)]                                          # [G, L*8, D]
+        with jax.named_scope("loss"):
+            (loss, (l_bce, l_eik)), (g_feat, g_dec) = loss_grad(feats, dec, b, b.coords, h.beta, h.weight_e)
+        with jax.named_scope("adam"):
+            upd, f_opt = opt.update(adam.SparseGrads(rows.reshape(-1), g_feat.reshape(-1, table.shape[-1])), f_opt)
+            table = adam.apply_updates(table, upd)
+            # The decoder's state is optax.adam's first part (scale_by_adam); its learning-rate part has none.
+            upd, (d_opt_new, _) = dec_tx.update(g_dec, (d_opt, optax.EmptyState()), dec)
+            dec_new = optax.apply_updates(dec, upd)
+            dec, d_opt = jax.tree_util.tree_map(lambda a, b: jnp.where(train_decoder, a, b), (dec_new, d_opt_new),
+                                                (dec, d_opt))
         return table, f_opt, dec, d_opt, key, acc + jnp.stack([loss, l_bce, l_eik])
 
     n_iters = jnp.where(active, static.iters, 0)
