@@ -2,7 +2,8 @@
 
 DUFOMap's idea on the N3 map's voxels. Every frame tests the allocated leaf voxels within
 `evidence.max_range_m` of the sensor (the window's and those that left it) against the scan's range
-image (`jaxmap.range_image`, built from the whole raw scan, not the training crop):
+image (`jaxmap.range_image`, built from the whole raw scan, not the training crop), those whose own pixel
+lets them be free (`may_be_free`, one lookup: about a fifth of them) with their whole footprint:
 
   seen free  every return whose ray passes through the voxel lies beyond the voxel's far side by
              `margin` (pose and range error): the sensor looked through the whole voxel. Its footprint
@@ -40,8 +41,9 @@ from jaxmap.grid.compaction import nonzero_fixed
 
 RUN_CAP = 1 << 14          # free_run saturates here (int32; a voxel seen free for ever stays void)
 RAISE_PER_FRAME = 4096     # voxels whose pairs are raised per frame (the rest next frame: `raised` says)
-TESTED_PER_FRAME = 1 << 18  # voxels tested against a frame's range image at most (those within
-                            # `evidence.max_range_m`; when more are, a different part of them each frame)
+TESTED_PER_FRAME = 1 << 16  # voxels tested against a frame's range image at most (those within
+                            # `evidence.max_range_m` that `may_be_free` lets through: 18-31 k of 105-122 k on
+                            # the city and the traffic street; when more are, a different part of them each frame)
 
 
 @flax.struct.dataclass
@@ -68,18 +70,34 @@ def void(ev: Evidence, void_frames: int) -> jax.Array:
     return ev.free_run >= void_frames
 
 
-def candidates(voxel_coord, n_voxels, leaf: float, sensor, max_range: float, offset):
-    """The voxel rows a frame tests: those within max_range of the sensor (map frame), at most
-    TESTED_PER_FRAME of them, starting at row `offset` (a traced int; the caller rotates it, so that when
-    more voxels are in range every one is tested every few frames). Returns (rows [T] int32 (V: none),
-    [] bool more voxels were in range than tested)."""
+def candidates(voxel_coord, n_voxels, leaf: float, sensor, max_range: float, offset, maybe=True):
+    """The voxel rows a frame tests: those within max_range of the sensor (map frame) that `maybe` ([V]
+    bool, `may_be_free`) lets through, at most TESTED_PER_FRAME of them, starting at row `offset` (a traced
+    int; the caller rotates it, so that when more voxels are in range every one is tested every few frames).
+    Returns (rows [T] int32 (V: none), [] bool more voxels were in range than tested)."""
     v = voxel_coord.shape[0]
     d = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - sensor
-    near = (jnp.sum(d * d, axis=1) <= max_range * max_range) & (jnp.arange(v, dtype=jnp.int32) < n_voxels)
+    near = (jnp.sum(d * d, axis=1) <= max_range * max_range) & (jnp.arange(v, dtype=jnp.int32) < n_voxels) & maybe
     size = min(TESTED_PER_FRAME, v)
     idx = nonzero_fixed(jnp.roll(near, -offset), size, v)
     rows = jnp.where(idx < v, (idx + offset) % v, v)
     return rows, jnp.sum(near, dtype=jnp.int32) > size
+
+
+def may_be_free(voxel_coord, leaf: float, blocked, layout: ri.Layout, rotation, translation, margin: float,
+                min_range: float):
+    """[V] bool: the voxels (leaf-voxel coordinates [V, 3] int32, map frame) `seen_free` may find free this
+    frame, at a fraction of its cost: one pixel instead of a footprint. The pixel of the voxel's centre is
+    in its footprint, so where that pixel's return (blocked: the range image with its dropouts blocking,
+    `range_image.dropouts_block`) is not beyond the voxel's far side by `margin`, neither is the footprint's
+    nearest. A pixel without a return (inf) passes: the rest of the footprint may hold one. (A centimetre of
+    slack: the two tests round their angles in different programs.)"""
+    centre = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - translation
+    p_s = jnp.sum(centre[:, :, None] * rotation[None], axis=1)                        # (as `seen_free`)
+    half = leaf * math.sqrt(3.0) / 2.0
+    row, col, dist, inside = ri.pixels(p_s, layout, jnp)
+    own = blocked[jnp.clip(row, 0, layout.rows - 1), col]
+    return inside & (dist > max(min_range, half + margin) - 0.01) & (own > dist + half + margin - 0.01)
 
 
 def seen_free(voxel_coord, leaf: float, levels, layout: ri.Layout, rotation, translation, margin: float,

@@ -103,7 +103,10 @@ def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, vo
         levels = range_image.footprint_levels(blocked, static.image, jnp)
     offset = (frame * n3evidence.TESTED_PER_FRAME) % v
     with jax.named_scope("candidates"):
-        rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset)
+        maybe = n3evidence.may_be_free(voxel_coord, static.leaf, blocked, static.image, scan.rotation, scan.sensor,
+                                       static.evidence_margin, static.free_min_range)
+        rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset,
+                                        maybe)
     with jax.named_scope("test"):
         coords = voxel_coord[jnp.minimum(rows, v - 1)]
         free = (rows < v) & n3evidence.seen_free(coords, static.leaf, levels, static.image, scan.rotation, scan.sensor,
