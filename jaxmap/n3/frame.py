@@ -120,8 +120,6 @@ def grow_for(static: N3Static, state: N3State, stats: FrameStats, seed: int, fea
         v_rows *= 2
     while c_need > r_rows or (bool(stats.corner_overflow) and r_rows == caps.feature_rows):
         r_rows *= 2
-    v_slots = max(caps.voxel_slots, pow2(v_rows / static.max_load))
-    c_slots = max(caps.corner_slots, pow2(r_rows / static.max_load))
     if static.uses_pool:
         need = int(stats.blocks_needed) + 2 * max(int(stats.blocks_needed) - int(stats.store_pairs), 0)
         cap = caps.pool_pairs
