@@ -28,6 +28,15 @@ def nonzero_fixed(mask: jax.Array, size: int, fill_value: int) -> jax.Array:
     return out.at[jnp.where(mask, pos, size)].set(jnp.arange(n, dtype=jnp.int32), mode="drop")
 
 
+def nonzero_from(mask: jax.Array, size: int, start) -> jax.Array:
+    """Indices [size] int32 of the first `size` True entries of mask [n] counted from entry `start` (a traced
+    int, wrapping past the end), n where there are fewer: a window over a selection larger than a fixed
+    buffer that the caller moves from call to call, so that every entry has its turn."""
+    n = mask.shape[0]
+    idx = nonzero_fixed(jnp.roll(mask, -start), size, n)
+    return jnp.where(idx < n, (idx + start) % n, n)
+
+
 def stage_sizes(n: int) -> list[int]:
     """Static buffer sizes of the compaction stages of a batch of ``n`` keys: n/8, n/64, ... (>= 512)."""
     sizes = []

@@ -37,7 +37,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmap import range_image as ri
-from jaxmap.grid.compaction import nonzero_fixed
+from jaxmap.grid.compaction import nonzero_fixed, nonzero_from
 
 RUN_CAP = 1 << 14          # free_run saturates here (int32; a voxel seen free for ever stays void)
 RAISE_PER_FRAME = 4096     # voxels whose pairs are raised per frame (the rest next frame: `raised` says)
@@ -79,9 +79,7 @@ def candidates(voxel_coord, n_voxels, leaf: float, sensor, max_range: float, off
     d = (voxel_coord.astype(jnp.float32) + 0.5) * leaf - sensor
     near = (jnp.sum(d * d, axis=1) <= max_range * max_range) & (jnp.arange(v, dtype=jnp.int32) < n_voxels) & maybe
     size = min(TESTED_PER_FRAME, v)
-    idx = nonzero_fixed(jnp.roll(near, -offset), size, v)
-    rows = jnp.where(idx < v, (idx + offset) % v, v)
-    return rows, jnp.sum(near, dtype=jnp.int32) > size
+    return nonzero_from(near, size, offset), jnp.sum(near, dtype=jnp.int32) > size
 
 
 def may_be_free(voxel_coord, leaf: float, blocked, layout: ri.Layout, rotation, translation, margin: float,

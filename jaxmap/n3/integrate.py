@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from jaxmap import range_image
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
-from jaxmap.grid.compaction import nonzero_fixed
+from jaxmap.grid.compaction import nonzero_from
 from jaxmap.n3 import evidence as n3evidence
 from jaxmap.n3 import pool, window
 from jaxmap.n3.query import query
@@ -203,16 +203,6 @@ class FramePairs:
         return slice(m - self.budget, m)
 
 
-def ray_pick(ok, budget: int, key):
-    """Indices [budget] into ok.reshape(-1) ([n, r] bool) of at most `budget` True entries, in scan order
-    from a random start (so that over frames every part of the scan is used); n * r where none."""
-    flat = ok.reshape(-1)
-    total = flat.shape[0]
-    start = jax.random.randint(key, (), 0, total)
-    pick = nonzero_fixed(jnp.roll(flat, -start), budget, total)
-    return jnp.where(pick < total, (pick + start) % total, total)
-
-
 @functools.partial(jax.named_call, name="pairs")
 def frame_pairs(static: N3Static, samples: Samples, vox, valid, surf_rows, free, key) -> FramePairs:
     """The pairs of a frame (`FramePairs`) from its samples ([n * (ns + nf)], `sample_frame`'s order), their
@@ -228,17 +218,19 @@ def frame_pairs(static: N3Static, samples: Samples, vox, valid, surf_rows, free,
         return x.reshape((n, k + nr) + x.shape[1:])[:, lo:hi].reshape((-1,) + x.shape[1:])
 
     arrays = [vox, samples.points, samples.labels, samples.surface, samples.valid]
-    head = [part(x, 0, k) for x in arrays]
+    out = [part(x, 0, k) for x in arrays]
     budget = min(static.carve_samples, n * nr)
     rays_left = jnp.zeros((), jnp.int32)
     if budget:
-        pick = ray_pick(ray_ok, budget, jax.random.fold_in(key, 4))
+        # at most `budget` of them, in scan order from a random start: over frames every part of the scan is used
+        start = jax.random.randint(jax.random.fold_in(key, 4), (), 0, n * nr)
+        pick = nonzero_from(ray_ok.reshape(-1), budget, start)
         real = pick < n * nr
         at = jnp.minimum(pick, n * nr - 1)
         rows = jnp.concatenate([rows, jnp.where(real, free_rows[:, nb:].reshape(-1)[at], -1)])
-        head = [jnp.concatenate([h, part(x, k, k + nr)[at]]) for h, x in zip(head, arrays)]
+        out = [jnp.concatenate([o, part(x, k, k + nr)[at]]) for o, x in zip(out, arrays)]
         rays_left = jnp.sum(ray_ok, dtype=jnp.int32) - jnp.sum(real, dtype=jnp.int32)
-    vox, pts, labels, surface, ok = head
+    vox, pts, labels, surface, ok = out
     return FramePairs(rows, vox, Samples(pts, labels, surface, ok), rays_left, budget)
 
 

@@ -24,7 +24,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmap.grid.compaction import nonzero_fixed, prefix_sum
+from jaxmap.grid.compaction import nonzero_fixed, nonzero_from, prefix_sum
 
 BLOCK_POLICIES = ("reservoir", "ring")
 CARVE_RULES = ("replace", "raise")
@@ -375,10 +375,9 @@ def carve(store: PairStore, voxel_rows, points, labels, use, frame, key, *, marg
     slot = jnp.where(quiet, slot, -1)
     total = slot.shape[0]
     m = min(max_samples, total)
-    start = jax.random.randint(key, (), 0, total)
-    pick = nonzero_fixed(jnp.roll(slot >= 0, -start), m, total)                # [m], fill = out of range
+    pick = nonzero_from(slot >= 0, m, jax.random.randint(key, (), 0, total))  # [m], total: none
     real = pick < total
-    pick = (jnp.minimum(pick, total - 1) + start) % total
+    pick = jnp.minimum(pick, total - 1)
     sl = jnp.where(real, slot[pick], 0)
     y, ly = points[pick], labels[pick]                                         # [m, 3], [m]
     blk = store.pairs[sl]                                                      # [m, P, 4]
