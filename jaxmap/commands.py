@@ -109,7 +109,7 @@ def baseline(args) -> int:
 
 def map(args) -> int:  # noqa: A001 - the command's name
     """`jaxmap map CONFIG [--data DIR] [--out RUN]` or `jaxmap map --resume RUN`: the N3 map of a sequence."""
-    from jaxmap.n3.run import map_sequence
+    from jaxmap.runs.n3 import map_sequence
     from jaxmap.viewer import view_options
 
     if args.resume:
@@ -142,7 +142,7 @@ def map(args) -> int:  # noqa: A001 - the command's name
 def mesh(args) -> int:
     """`jaxmap mesh RUN [--res R] [--out PATH]`: a mesh of the newest intact checkpoint of a map run."""
     from jaxmap.n3.submap_mapper import load_map
-    from jaxmap.n3.run import no_usable_checkpoint
+    from jaxmap.runs.n3 import no_usable_checkpoint
 
     run = args.run
     if not os.path.isdir(run):
@@ -173,7 +173,7 @@ def mesh(args) -> int:
 def demo(args) -> int:
     """`jaxmap demo`: synthesize the city (once), map it with the shipped config `city`, mesh, evaluate,
     say where it went."""
-    from jaxmap.n3.run import map_sequence
+    from jaxmap.runs.n3 import map_sequence
     from jaxmap.synth.city import generate_city
 
     if not os.path.isfile(os.path.join(args.data, "poses.txt")):
@@ -195,7 +195,7 @@ def demo(args) -> int:
 def imt(args) -> int:
     """`jaxmap imt CONFIG [--data DIR] [--out RUN]`: the transformable latent map of a sequence."""
     from jaxmap.config import ImtConfig
-    from jaxmap.imt.run import run_imt
+    from jaxmap.runs.imt import run_imt
     from jaxmap.viewer import view_options
 
     cfg = config_from_args(args, ImtConfig)

@@ -363,20 +363,6 @@ def outside_programs(timings: list[dict], wall_s: float, compile_s: float = 0.0)
                for k in ("wait", "dispatch", "stats", "checkpoint")}}
 
 
-def medians(timings: list[dict], keys: Iterable[str], skip_first: int = 1, p95: Iterable[str] = ()) -> dict:
-    """`median_<key>` (and `p95_<key>` for the keys in `p95`) over the records after the first `skip_first`
-    (compiling) frames, and the count of frames that had no point to map (`empty_frames`: empty scans, or
-    all cropped away)."""
-    rows = timings[skip_first:] if len(timings) > skip_first else timings
-    out = {}
-    for name, stat, ks in (("median", np.median, keys), ("p95", lambda v: np.percentile(v, 95), p95)):
-        for k in ks:
-            vals = [r[k] for r in rows if k in r]
-            out[f"{name}_{k}"] = float(stat(vals)) if vals else float("nan")
-    out["empty_frames"] = int(sum(1 for r in timings if r.get("points", 1) == 0))
-    return out
-
-
 # ------------------------------------------------------------------------------------------------
 # the live viewer of a run (`--view`)
 # ------------------------------------------------------------------------------------------------

@@ -78,7 +78,7 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
     from jaxmap.config import load_config
     from jaxmap.io import open_sequence
     from jaxmap.metrics import format_metrics
-    from jaxmap.n3.run import prepare_frame
+    from jaxmap.runs.n3 import prepare_frame
 
     real_submit, real_finish = mapper_mod.N3Mapper.submit, mapper_mod.N3Mapper.finish
 

@@ -7,7 +7,8 @@ import threading
 import numpy as np
 import pytest
 
-from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, medians, run_frames
+from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, run_frames
+from jaxmap.records import medians
 from jaxmap.rundir import Interrupted
 
 

@@ -2,7 +2,7 @@
 
 No import circle between jaxmap's modules, no module over 500 lines and no function over 60 lines outside
 the synthetic scenes (`jaxmap/synth/`, long tables of geometry), no private name imported from another
-module, and one frame loop: every run goes through `jaxmap.frame_loop.run_frames`."""
+module, one frame loop (every run goes through `jaxmap.frame_loop.run_frames`), and the maps below the runs."""
 import ast
 import pathlib
 
@@ -108,3 +108,15 @@ def test_one_frame_loop(call):
     users = [name for name, path in _modules() if call in path.read_text()
              and name not in ("jaxmap.frame_loop", "jaxmap.viewer", "jaxmap.rundir")]
     assert not users, f"{call} outside jaxmap.frame_loop: {users}"
+
+
+RUN_LAYER = ("jaxmap.frame_loop", "jaxmap.viewer", "jaxmap.finish", "jaxmap.runs")
+
+
+def test_maps_stay_below_the_run_layer():
+    """The maps (`jaxmap.n3`, `jaxmap.imt`) are libraries a notebook or a script drives frame by frame: they
+    import nothing of the runs built on them (the frame loop, the viewer, the finisher, `jaxmap.runs`)."""
+    edges, _ = _graph()
+    up = [f"{m} imports {d}" for m, deps in edges.items() if m.startswith(("jaxmap.n3", "jaxmap.imt"))
+          for d in deps if d.startswith(RUN_LAYER)]
+    assert not up, up

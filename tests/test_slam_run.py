@@ -79,7 +79,7 @@ def test_slam_front_end_drives_the_map_on_a_dense_room_stretch(tmp_path):
     # 1.62 with the sub-centimetre odometry error of these 8 frames)
     from jaxmap.finish import mesh_and_metrics
     from jaxmap.frame_loop import open_run_sequence
-    from jaxmap.imt.run import build_map
+    from jaxmap.runs.imt import build_map
 
     icfg = cfg.imt()
     ref = mesh_and_metrics(build_map(icfg, open_run_sequence(icfg), progress=False), icfg, str(tmp_path), "gt.ply")

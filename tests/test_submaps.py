@@ -259,7 +259,7 @@ def test_mapping_at_given_poses_makes_a_map_of_submaps(small_city, tmp_path):
     """`map_at_poses` (the N3 map `jaxmap slam` builds offline at its optimised poses) with submaps.enabled
     maps into submaps, placed at the given poses (it refused: N3Mapper maps one grid)."""
     from jaxmap.frame_loop import open_run_sequence
-    from jaxmap.n3.run import map_at_poses
+    from jaxmap.runs.n3 import map_at_poses
 
     cfg = load_config("configs/city.yaml", SMALL + ["submaps.enabled=true", "submaps.length_m=2", "train.iters=10",
                                                     f"data.path={small_city}", "data.end_frame=6",

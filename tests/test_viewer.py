@@ -208,7 +208,7 @@ def test_copy_arrays_survives_donation():
     import jax
     import jax.numpy as jnp
 
-    from jaxmap.viewer import copy_arrays
+    from jaxmap.snapshot import copy_arrays
 
     step = jax.jit(lambda s: {"a": s["a"] + 1}, donate_argnums=0)
     state = {"a": jnp.arange(4.0)}

@@ -207,7 +207,7 @@ def remap_method(cfg, seq, gt, out: str, method: str) -> tuple[dict, dict]:
     from dataclasses import replace
 
     from jaxmap.finish import mesh_and_metrics
-    from jaxmap.imt.run import build_map
+    from jaxmap.runs.imt import build_map
 
     c = replace(cfg, map=replace(cfg.map, remap=method))
     rows, fig = {}, {}
@@ -260,7 +260,7 @@ def remap_at_scale(cfg, data: str) -> dict:
 
     from jaxmap.compile_cache import programs_built
     from jaxmap.frame_loop import open_run_sequence
-    from jaxmap.imt.run import build_map
+    from jaxmap.runs.imt import build_map
 
     cfg = replace(cfg, data=replace(cfg.data, path=data, end_frame=-1))
     seq = open_run_sequence(cfg)

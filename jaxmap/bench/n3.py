@@ -49,7 +49,7 @@ COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_
 
 def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str], evaluate: bool = True) -> dict:
     """`jaxmap map configs/city.yaml` in a fresh process with its own compile cache; its summary."""
-    from jaxmap.n3.run import city_config_path
+    from jaxmap.runs.n3 import city_config_path
 
     env = dict(os.environ, JAXMAP_CACHE_DIR=cache_dir)
     env.pop("JAX_COMPILATION_CACHE_DIR", None)  # set by this process's `import jaxmap`
@@ -197,7 +197,7 @@ def _tsdf_row(data: str, out: str, base: list[str]) -> dict:
     from jaxmap.baselines.tsdf import tsdf_from_sequence
     from jaxmap.config import load_config
     from jaxmap.finish import evaluate_run_mesh
-    from jaxmap.n3.run import city_config_path
+    from jaxmap.runs.n3 import city_config_path
 
     cfg0 = load_config(city_config_path(), [f"data.path={data}"] + base)
     t0 = time.perf_counter()

@@ -49,7 +49,7 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     from jaxmap.io import open_sequence
     from jaxmap.n3 import core
     from jaxmap.n3.mapper import N3Mapper
-    from jaxmap.n3.run import city_config_path
+    from jaxmap.runs.n3 import city_config_path
 
     jax.devices()  # the runtime up, as before the first frame
     out = {"rss_imports": hostmem.rss_mb()}

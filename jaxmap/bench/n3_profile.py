@@ -263,7 +263,7 @@ def main_profile(args, data: str, overrides: list[str]) -> dict:
 
 def _child(argv=None) -> int:
     from jaxmap.config import load_config
-    from jaxmap.n3.run import city_config_path
+    from jaxmap.runs.n3 import city_config_path
 
     p = argparse.ArgumentParser()
     p.add_argument("--data", required=True)

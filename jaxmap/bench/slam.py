@@ -103,7 +103,7 @@ def slam_against_references(cfg, out: str) -> dict:
     """`jaxmap slam`, and the maps of the same frames with the true poses and with the odometry alone."""
     from jaxmap.finish import mesh_and_metrics
     from jaxmap.frame_loop import open_run_sequence
-    from jaxmap.imt.run import build_map
+    from jaxmap.runs.imt import build_map
     from jaxmap.slam.run import run_slam
 
     slam = run_slam(cfg, cfg.output)
@@ -124,7 +124,7 @@ def n3_slam_against_references(cfg, out: str) -> dict:
     map`, run first: it pays the frame program's compile) and with the odometry alone. Seconds per frame
     are the wall-clock of each frame loop less its compiling, over the frames."""
     from jaxmap.frame_loop import open_run_sequence
-    from jaxmap.n3.run import map_sequence
+    from jaxmap.runs.n3 import map_sequence
     from jaxmap.slam.n3slam import n3_map_config
     from jaxmap.slam.run import n3_from_poses, run_slam
 
@@ -221,7 +221,7 @@ def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
     from jaxmap.config import load_config, shipped_config_path
     from jaxmap.finish import mesh_and_metrics
     from jaxmap.frame_loop import open_run_sequence
-    from jaxmap.imt.run import build_map
+    from jaxmap.runs.imt import build_map
     from jaxmap.config import SlamConfig
     from jaxmap.slam.run import run_slam
 

@@ -11,7 +11,7 @@ changed) and the encode capacities that sufficed so far (`mapper.hints`). Every 
 preprocessed (crop, downsample to about voxel/4, PCA normals towards the sensor) and pooled into
 cells on the world grid at its pose on the host, then kept as a keyframe and encoded and fused by
 one compiled program (`core.integrate`), whose stats are read once. The host's part (`prepare`) can be
-done ahead, in the frame loop's prefetch threads (`jaxmap.imt.run.prepare_frame`).
+done ahead, in the frame loop's prefetch threads (`jaxmap.runs.imt.prepare_frame`).
 """
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ import numpy as np
 from jaxmap.checkpoint import read_meta, read_tree, save_tree
 from jaxmap.config import ImtConfig, from_dict, to_dict
 from jaxmap.errors import DataError
-from jaxmap.frame_loop import medians
+from jaxmap.records import medians
 from jaxmap.geometry import SE3, validate_pose
 from jaxmap.grid.hashing import HashTable
 from jaxmap.imt import core

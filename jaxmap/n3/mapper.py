@@ -15,14 +15,14 @@ import numpy as np
 
 from jaxmap import hostmem
 from jaxmap.config import MapConfig
-from jaxmap.frame_loop import medians
+from jaxmap.records import medians
 from jaxmap.geometry import validate_pose
 from jaxmap.n3 import core, scan
 from jaxmap.n3.query import extract_mesh_of, query_world
 from jaxmap.n3 import window
 from jaxmap.n3.evidence import void as void_of
 from jaxmap.sizes import pow2
-from jaxmap.viewer import copy_arrays
+from jaxmap.snapshot import copy_arrays
 
 _forget_jit = jax.jit(window.forget_frames)
 # The empty map as one program: built op by op, it compiled some fifty small programs each run (~4 s).

@@ -1,7 +1,7 @@
 """Host side of a frame: check and preprocess a scan, move it to the map frame, pad it to a bucket.
 
 Preprocessing (crop, downsample, PCA normals; numpy/scipy) is ~0.2 s per city scan on 2 cores;
-`jaxmap map` runs it for the next frames in the frame loop's prefetch thread (`jaxmap.n3.run.prepare_frame`,
+`jaxmap map` runs it for the next frames in the frame loop's prefetch thread (`jaxmap.runs.n3.prepare_frame`,
 `jaxmap.frame_loop.Prefetcher`), off the critical path (numpy and scipy's k-d tree release the GIL),
 and then, in order, pads each scan, moves it to the map frame and uploads it (`Uploader`).
 """

@@ -40,7 +40,8 @@ import numpy as np
 
 from jaxmap.config import MapConfig, SlamConfig, load_config, validate
 from jaxmap.errors import CheckpointError, JaxmapError
-from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, medians, run_frames
+from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, run_frames
+from jaxmap.records import medians
 from jaxmap.geometry import compose, orthonormalize
 from jaxmap.n3 import scan
 from jaxmap.n3.mapper import N3Mapper

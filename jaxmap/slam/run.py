@@ -302,7 +302,7 @@ def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarra
 def n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool, desc: str = "optimised poses") -> dict:
     """The N3 map of the same frames at `poses` [N,4,4] (the optimised ones in `run_slam`) (written as a KITTI pose file beside a
     symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
-    from jaxmap.n3.run import map_at_poses
+    from jaxmap.runs.n3 import map_at_poses
 
     os.makedirs(out_dir, exist_ok=True)
     mapper, loop = map_at_poses(n3_map_config(cfg, out_dir), seq, poses, progress, f"n3 ({desc})")
