@@ -2,7 +2,7 @@
 
     summary = finish_run(mapper, cfg, out_dir, loop)   # mesh.ply, metrics.json (with ground truth), timing.json
 
-`mapper` is a `jaxmap.frame_loop.Mapper`, `loop` the `LoopResult` of the run's frame loop.
+`mapper` is a `jaxmap.frame_loop.Mapper`, `loop` the `FramesRun` of the run's frame loop.
 """
 from __future__ import annotations
 
@@ -12,14 +12,14 @@ import os
 import time
 from typing import Callable
 
-from jaxmap.frame_loop import LoopResult, Mapper, close_viewer, outside_programs
+from jaxmap.frame_loop import FramesRun, Mapper, close_viewer, outside_programs
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import evaluate_mesh_file
 
 log = logging.getLogger("jaxmap")
 
 
-def finish_run(mapper: Mapper, cfg, out_dir: str, loop: LoopResult | None = None, *, evaluate: bool = True,
+def finish_run(mapper: Mapper, cfg, out_dir: str, loop: FramesRun | None = None, *, evaluate: bool = True,
                mesh: bool = True, extra: dict | None = None, viewer=None, point_scores: dict | None = None,
                wait_saves: Callable[[], None] | None = None) -> dict:
     """Mesh (`out_dir/mesh.ply`), metrics against the sequence's ground truth (`metrics.json`, when it

@@ -15,6 +15,7 @@ run leaves (mesh, metrics, timings) is written by the one finisher, `jaxmap.fini
 """
 from __future__ import annotations
 
+import collections
 import concurrent.futures
 import dataclasses
 import logging
@@ -91,6 +92,17 @@ def read_frame(seq, position: int) -> Frame:
     """`Prefetcher` loader of the sequence's frame as it is on disk."""
     fr = seq.frame(position)
     return Frame(position, int(fr.index), fr.points, fr.pose)
+
+
+def prepared_frame(prepare: Callable, seq, position: int, poses=None, label: Callable | None = None) -> Frame:
+    """`Prefetcher` loader of a frame made ready for a map: read, at poses[position] when `poses` [N, 4, 4] is
+    given (else at the sequence's pose), prepared by `prepare(points_s, pose, position) -> (scan, pose)` (N3:
+    `MapStart.prepare`; scan.points, .normals, .image), and with `label` its points labelled
+    (`label(points, pose, index) -> [M] bool`: the moving objects' points, `jaxmap.metrics.dynamic`)."""
+    fr = seq.frame(position)
+    scan, pose = prepare(fr.points, fr.pose if poses is None else poses[position], position)
+    return Frame(position, int(fr.index), scan.points, pose, scan.normals, scan.image,
+                 dynamic=label(scan.points, pose, int(fr.index)) if label is not None else None)
 
 
 class Prefetcher:
@@ -191,7 +203,9 @@ class Progress:
 
 
 @dataclasses.dataclass(frozen=True)
-class LoopResult:
+class FramesRun:
+    """What a `run_frames` loop did (not a loop closure: that is `jaxmap.slam.loops.LoopResult`)."""
+
     frames_run: int     # frames mapped by this loop (after a resume: the new ones)
     wall_s: float       # wall-clock from `t_start`: compilation, checkpoints and the final save included
     final_save_s: float = 0.0   # of which the final checkpoint (started: `Checkpoints.final` writes on)
@@ -210,6 +224,35 @@ class Steps(Protocol):
     def drain(self) -> list[Finished]: ...
 
 
+class SubmitSteps:
+    """`Steps` of a map that runs its frames ahead of their records (N3's `submit` / `finish`): each frame's
+    `batch` (uploaded by the Prefetcher's `then`, N3's `scan.Uploader`) is submitted as soon as it is read,
+    and its record comes back a frame later, paired here with its frame. on_finished(frame, record, kept):
+    called for each finished frame (kept: the map's [M] bool of the points it trained on, or None), e.g.
+    a run's running evaluation."""
+
+    def __init__(self, mapper, on_finished: Callable | None = None):
+        self.mapper, self.on_finished = mapper, on_finished
+        self._frames: collections.deque[Frame] = collections.deque()  # submitted, record not back yet
+
+    def submit(self, frame: Frame) -> list[Finished]:
+        self._frames.append(frame)
+        return self._paired(self.mapper.submit(frame.batch, points=len(frame.points), prepare_s=frame.prepare_s,
+                                               wait_s=frame.wait_s, pose=frame.pose, origin=frame.origin))
+
+    def drain(self) -> list[Finished]:
+        return self._paired(self.mapper.finish())
+
+    def _paired(self, finished: list) -> list[Finished]:
+        out = []
+        for record, kept in finished:
+            frame = self._frames.popleft()
+            if self.on_finished is not None:
+                self.on_finished(frame, record, kept)
+            out.append((frame, record, frame.pose))
+        return out
+
+
 class _AtOnce:
     """A step function as `Steps`: each frame finished when `submit` returns."""
 
@@ -224,7 +267,7 @@ class _AtOnce:
 
 
 def run_frames(frames: Iterable[Frame], step, *, total: int, start: int = 0, progress: Progress = Progress(),
-               viewer=None, checkpoints: Checkpoints | None = None, t_start: float | None = None) -> LoopResult:
+               viewer=None, checkpoints: Checkpoints | None = None, t_start: float | None = None) -> FramesRun:
     """Run `step` on every frame of `frames` (positions start .. total - 1) and return what it cost.
 
     step: a function of a frame -> (record, pose), or a `Steps` (frames finished later than submitted):
@@ -270,7 +313,7 @@ def run_frames(frames: Iterable[Frame], step, *, total: int, start: int = 0, pro
         t0 = time.perf_counter()
         checkpoints.final() if checkpoints.final is not None else checkpoints.save(False)
         final_save_s = time.perf_counter() - t0
-    return LoopResult(books.done, time.perf_counter() - t_start, final_save_s)
+    return FramesRun(books.done, time.perf_counter() - t_start, final_save_s)
 
 
 class _Books:

@@ -229,13 +229,12 @@ def test_growth_from_tiny_capacities_loses_nothing():
     # The map is bit for bit the one of the frame-by-frame mapper (the hash tables: the same keys in the
     # same rows). A pipeline that ran frame 1 on top of frame 0's failed pass, or did not run it again,
     # gives other rows, pairs and features.
-    piped = N3Mapper(cfg, state=core.init_state(static, cfg, tiny))
-    piped.fix_layout(frames[0][0])
-    piped.place_origin(frames[0][1])
-    upload = scan.Uploader(piped.origin, raw=False)
+    start = scan.MapStart.of(cfg, *frames[0])
+    piped = N3Mapper(start=start, state=core.init_state(start.static, start.cfg, tiny))
+    upload = piped.uploader()
     for i, (pts, pose) in enumerate(frames):
-        p, nrm, pose, img = scan.preprocess(pts, pose, piped.cfg.preprocess, i, image=piped.static.evidence)
-        piped.submit(upload(Frame(i, i, p, pose, nrm, img)).batch, points=len(p))
+        ready, pose = piped.start.prepare(pts, pose, i)
+        piped.submit(upload(Frame(i, i, ready.points, pose, ready.normals, ready.image)).batch, points=len(ready.points))
     piped.finish()
     assert [r["passes"] for r in piped.timings] == [r["passes"] for r in small.timings]
     assert sum(r["passes"] for r in piped.timings) > len(frames)

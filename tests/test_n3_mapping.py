@@ -117,14 +117,14 @@ def test_small_city_maps_to_a_mesh_close_to_ground_truth(small_city, tmp_path, m
 def test_ctrl_c_leaves_a_checkpoint_and_resume_finishes_the_same_map(small_city, tmp_path, monkeypatch):
     """KeyboardInterrupt during frame 2 -> checkpoint of frames 0-1; `--resume` gives the same map as
     an uninterrupted run."""
-    import jaxmap.n3.mapper as mapper_mod
     from jaxmap.cli import main
+    from jaxmap.frame_loop import SubmitSteps
 
     args = ["--no-progress", "--data", str(small_city), "--set", "data.end_frame=4", "--set", "train.iters=3",
             "--set", "train.nv=64", "--set", "eval.n_samples=20000", "--set", "mesh.resolution_m=0.2"]
     assert main(["map", "configs/city.yaml", "--out", str(tmp_path / "full")] + args) == 0
 
-    real = mapper_mod.N3Mapper.submit
+    real = SubmitSteps.submit  # where the frame loop hands each frame to the map
     submitted = []
 
     def interrupt_at_2(self, *a, **kw):  # Ctrl-C as frame 2 is handed to the map (frames 0-1 in flight)
@@ -133,11 +133,11 @@ def test_ctrl_c_leaves_a_checkpoint_and_resume_finishes_the_same_map(small_city,
         submitted.append(1)
         return real(self, *a, **kw)
 
-    monkeypatch.setattr(mapper_mod.N3Mapper, "submit", interrupt_at_2)
+    monkeypatch.setattr(SubmitSteps, "submit", interrupt_at_2)
     assert main(["map", "configs/city.yaml", "--out", str(tmp_path / "cut")] + args) == 130
     meta = json.loads((tmp_path / "cut" / "checkpoint" / "2" / "meta.json").read_text())
     assert meta["frame"] == 2
-    monkeypatch.setattr(mapper_mod.N3Mapper, "submit", real)
+    monkeypatch.setattr(SubmitSteps, "submit", real)
     assert main(["map", "--resume", str(tmp_path / "cut"), "--no-progress"]) == 0
     a = N3Mapper.load(str(tmp_path / "full" / "checkpoint"))
     b = N3Mapper.load(str(tmp_path / "cut" / "checkpoint"))

@@ -190,13 +190,13 @@ def test_a_second_writer_fails_at_once_naming_the_first_and_a_dead_ones_lock_is_
 
 SLOW_MAP = textwrap.dedent("""
     import sys, time
-    import jaxmap.n3.mapper as m
-    real = m.N3Mapper.submit  # the frame loop hands each frame to the map here
+    from jaxmap.frame_loop import SubmitSteps
+    real = SubmitSteps.submit  # the frame loop hands each frame to the map here
     def slow(self, *a, **k):
         out = real(self, *a, **k)
         time.sleep(0.5)  # leaves time to signal the run between its checkpoints
         return out
-    m.N3Mapper.submit = slow
+    SubmitSteps.submit = slow
     from jaxmap.cli import main
     sys.exit(main(sys.argv[1:]))
 """)

@@ -1,7 +1,9 @@
-"""`N3Mapper`: a thin stateful facade over the pure engine in `jaxmap.n3.core`.
+"""`N3Mapper`: the stateful map over the pure engine in `jaxmap.n3.core`: it holds the state, runs the
+frame programs one frame ahead of their statistics (`core.FramePipeline`), and keeps each frame's record.
 
     m = N3Mapper(cfg)                      # cfg: jaxmap.config.MapConfig
     m.add_frame(points_s, pose)            # points_s [N,3] sensor frame; pose [4,4] T_world_sensor
+    m.add_prepared(scan, pose)             # a scan made ready ahead: m.start.prepare(points_s, pose, i)
     sdf, valid = m.sdf(points_w)           # [M,3] world frame -> [M], [M]
     mesh = m.mesh(res=0.1)                 # trimesh.Trimesh, world frame
     m.save("runs/x/checkpoint"); m2 = N3Mapper.load("runs/x/checkpoint")
@@ -9,6 +11,7 @@
 from __future__ import annotations
 
 import time
+from typing import TypedDict
 
 import jax
 import numpy as np
@@ -16,8 +19,8 @@ import numpy as np
 from jaxmap import hostmem
 from jaxmap.config import MapConfig
 from jaxmap.records import medians
-from jaxmap.geometry import validate_pose
 from jaxmap.n3 import core, scan
+from jaxmap.n3.scan import MapStart, PreparedScan
 from jaxmap.n3.query import extract_mesh_of, query_world
 from jaxmap.n3 import window
 from jaxmap.n3.evidence import void as void_of
@@ -29,34 +32,81 @@ _forget_jit = jax.jit(window.forget_frames)
 empty_state = jax.jit(core.init_state, static_argnums=(0, 1, 2))
 
 
+class N3Record(TypedDict, total=False):
+    """What an N3 map keeps of each frame (`N3Mapper.timings`, timing.json; `add_frame` returns it with
+    `kept`). Seconds: preprocess_s (its preparation), wait_s (the loop waited for it), dispatch_s /
+    program_s / stats_s (handing its programs to the device / the programs / waiting for its stats),
+    map_s = dispatch_s + program_s, total_s (map_s and the main thread's time before the dispatch).
+    Sizes: points (prepared), bucket (padded rows), window_voxels, store_pairs, store_bytes, leaf_voxels,
+    feature_rows, feature_bytes, feature_capacity. The frame's training: loss, bce, eikonal, passes (frame
+    programs run for it: 1 unless a table grew). Free space: free_dropped, carved, points_filtered,
+    points_void, voxels_free, voxels_void, voxels_raised, rays_left. Memory: rss_mb, peak_rss_mb. A map of
+    submaps adds submap, submap_frame, submaps, submaps_resident, submaps_on_disk, device_mb; the frame
+    loop adds checkpoint_s."""
+
+    frame: int
+    points: int
+    bucket: int
+    preprocess_s: float
+    wait_s: float
+    dispatch_s: float
+    program_s: float
+    stats_s: float
+    map_s: float
+    total_s: float
+    passes: int
+    loss: float
+    bce: float
+    eikonal: float
+    window_voxels: int
+    store_pairs: int
+    store_bytes: int
+    leaf_voxels: int
+    feature_rows: int
+    feature_bytes: int
+    free_dropped: int
+    carved: int
+    points_filtered: int
+    points_void: int
+    voxels_free: int
+    voxels_void: int
+    voxels_raised: int
+    rays_left: int
+    feature_capacity: int
+    rss_mb: float
+    peak_rss_mb: float
+
+
 class N3Mapper:
     """Holds one `core.N3State` (in a `core.FramePipeline`, which runs the frame programs one frame ahead
-    of their stats) and the host-side record of a run (per-frame timings)."""
+    of their stats) and the host-side record of a run (one `N3Record` a frame, `timings`)."""
 
     def __init__(self, cfg: MapConfig | None = None, state: core.N3State | None = None,
-                 timings: list | None = None, first_scan: tuple | None = None, first_frame=None):
-        """first_scan: (points_s [N,3], pose [4,4]) of the frame that will be added first, if known
-        (or first_frame: that frame as `scan.Uploader` made it, a `frame_loop.Frame` with its batch):
-        the frame program is then compiled before the map's buffers are allocated, so the compiler's
-        heap (about a gigabyte on a CPU) and the map are not in memory at the same time, and the map
-        frame is placed at its pose (`place_origin`)."""
-        self.cfg = cfg or MapConfig()
+                 timings: list | None = None, *, start: MapStart | None = None, first_scan: tuple | None = None,
+                 first_batch=None):
+        """The ways in, all through one `scan.MapStart`:
+            N3Mapper(cfg)                                     set up by the first frame added (layout, map frame)
+            N3Mapper(cfg, first_scan=(points_s [N, 3], pose [4, 4]))   set up from the first frame now
+            N3Mapper(start=MapStart.of(cfg, points_s, pose), first_batch=b)   the same, its batch made ahead
+            N3Mapper(cfg, state, timings)                     a saved map (`load`)
+        With a first frame, the frame program is compiled (from first_batch, the first frame as the frame
+        loop uploads it, or from first_scan) before the map's buffers are allocated, so the compiler's heap
+        (about a gigabyte on a CPU) and the map are not in memory at the same time."""
+        self._start = start or MapStart.of(cfg or MapConfig(), *(first_scan or ()))
+        self.cfg, self.static = self._start.cfg, self._start.static
         if self.cfg.submaps.enabled and type(self) is N3Mapper:
             from jaxmap.errors import ConfigError
 
             raise ConfigError("submaps.enabled=true: a map of submaps is a SubmapMapper (jaxmap map makes one); "
                               "N3Mapper maps one grid: set submaps.enabled=false (jaxmap slam: n3_loop=submaps)")
-        if state is None and first_scan is not None:
-            self.cfg = scan.resolve_layout(self.cfg, first_scan[0])
-        self.static = core.N3Static.from_config(self.cfg)
         self._bucket, self._headroom = 0, {}
-        first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
         if state is None:
             caps = core.capacities_for(self.static, self.cfg)
-            if first_frame is not None:
-                self._precompile(caps, first_frame.batch)
-            elif first_scan is not None:
-                self._precompile(caps, self._first_batch(*first_scan))
+            if first_batch is None and first_scan is not None:
+                first, pose = self._start.prepare(*first_scan, 0)
+                first_batch = self._start.batch(first, pose, self._start.origin, scan.bucket_for(len(first.points)))
+            if first_batch is not None:
+                self._precompile(caps, first_batch)
             state = empty_state(self.static, self.cfg, caps)
             hostmem.trim()  # the initialisation's temporaries
         self.timings = list(timings or [])
@@ -64,13 +114,13 @@ class N3Mapper:
             self._bucket = int(self.timings[-1].get("bucket", 0))
         self._pipe = core.FramePipeline(self.static, state, self._headroom, seed=self.cfg.train.seed,
                                         feature_std=self.cfg.grid.feature_std)
-        self._unreported: list[dict] = []   # records of frames finished since `submit` / `finish` last returned
+        self._unreported: list[tuple[N3Record, np.ndarray | None]] = []  # finished since `submit` / `finish` returned
         self.frames = int(state.frame)      # frames submitted
         # A host copy of the origin (fixed once the first frame set it): reading the state's every
         # frame would be a second device->host transfer per frame.
         self._origin = core.origin_world(self.static, state)
-        if first_pose is not None and self.frames == 0:
-            self.place_origin(first_pose)
+        if self._start.anchor is not None and self.frames == 0:
+            self._place(self._start.anchor)
 
     @property
     def state(self) -> core.N3State:
@@ -83,21 +133,34 @@ class N3Mapper:
         self._settle()
         self._pipe.state = value
 
-    def place_origin(self, pose) -> None:
-        """Put the map frame at the sensor position of `pose` [4, 4] (the first frame's), snapped to the
-        coarsest voxel; before the first frame only (`add_frame` does it itself, `submit` needs it done)."""
-        if self.frames:
-            raise RuntimeError("the map frame is placed before the first frame only")
-        self._pipe.state = core.set_origin(self.static, self._pipe.state, _first_position(pose))
+    @property
+    def start(self) -> MapStart:
+        """How this map started (`scan.MapStart`): its settled config, its static part, its first position;
+        its `prepare` makes a scan ready for this map (host or device path), e.g. in a prefetch thread."""
+        return self._start
+
+    def uploader(self) -> scan.Uploader:
+        """The frame loop's last reading stage for this map: scans padded as the frames before them, in
+        its map frame, uploaded (`scan.Uploader`; a map of submaps moves its origin: `follow`)."""
+        return scan.Uploader(self._origin, self._start.device, self._bucket)
+
+    def _place(self, position_w) -> None:
+        """Put the map frame at world position_w [3] (the first frame's sensor), snapped to the coarsest voxel."""
+        self._pipe.state = core.set_origin(self.static, self._pipe.state, position_w)
         self._origin = core.origin_world(self.static, self._pipe.state)
 
-    def _first_batch(self, points_s, pose):
-        """The first frame's scan as its frame program takes it (for its shapes: the map frame is the sensor's)."""
-        if self.static.preprocess is not None:
-            pts, pose = scan.check_frame(points_s, pose, 0)
-            return scan.to_raw(pts, pose, pose[:3, 3], scan.bucket_for(len(pts)))
-        pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, 0, image=self.static.evidence)
-        return scan.to_batch(pts, nrm, pose, pose[:3, 3], scan.bucket_for(len(pts)), img)
+    def _begin(self, points_s, pose) -> None:
+        """Set the map up from its first frame (a map made without one): the range-image layout read off the
+        raw scan points_s [N, 3] (None: a prepared scan, the layout as configured; a new layout makes the
+        empty map again: nothing was compiled or mapped yet), the map frame at pose [4, 4] (None: not yet)."""
+        start = MapStart.of(self.cfg, points_s, pose, self.frames)
+        if start.static != self.static:
+            caps = core.Capacities.of(self.state)
+            self.state = None
+            self.state = empty_state(start.static, start.cfg, caps)
+        self._start, self.cfg, self.static, self._pipe.static = start, start.cfg, start.static, start.static
+        if start.anchor is not None:
+            self._place(start.anchor)
 
     def _precompile(self, caps: core.Capacities, batch) -> None:
         """Compile the first frame's program from the shapes alone (`core.compiled_step` keeps it)."""
@@ -110,61 +173,38 @@ class N3Mapper:
     def follow(self, uploader) -> None:
         """The frame loop's `scan.Uploader` (one grid keeps its origin: nothing to follow; `SubmapMapper`)."""
 
-    def fix_layout(self, points_s) -> None:
-        """Read the range-image layout off the first scan when the config leaves it open (an empty map is
-        made again with it: nothing was compiled or mapped yet)."""
-        if not scan.needs_layout(self.cfg):
-            return
-        self.cfg = scan.resolve_layout(self.cfg, points_s, self.frames)
-        self.static = core.N3Static.from_config(self.cfg)
-        self._pipe.static = self.static
-        caps = core.Capacities.of(self.state)
-        self.state = None
-        self.state = empty_state(self.static, self.cfg, caps)
-
-    def add_frame(self, points_s, pose, prepared: tuple | None = None) -> dict:
-        """Integrate one scan: points_s [N,3] float32 sensor frame; pose [4,4] T_world_sensor.
-        `prepared` = (points, normals, pose[, image]) already preprocessed (`scan.preprocess`, e.g. in the
-        frame loop's prefetch thread; the image, the whole scan's range image, feeds the free-space evidence).
-        Returns, once the frame is in, its timings (s), loss, map/store sizes and `kept` ([M] bool: the
-        prepared points that got training samples; None with `preprocess.device`)."""
+    def add_frame(self, points_s, pose) -> dict:
+        """Integrate one scan: points_s [N, 3] float32 sensor frame; pose [4, 4] T_world_sensor. Returns, once
+        the frame is in, its record (`N3Record`) and `kept` ([M] bool: the prepared points that got training
+        samples; None with `preprocess.device`)."""
         t0 = time.perf_counter()
-        device = self.static.preprocess is not None
-        img = None
-        if prepared is None and self.frames == 0:
-            self.fix_layout(points_s)
-        if prepared is not None:
-            pts, nrm, pose = prepared[:3]
-            img = prepared[3] if len(prepared) > 3 else None
-        elif device:
-            (pts, pose), nrm = scan.check_frame(points_s, pose, self.frames), None
-        else:
-            pts, nrm, pose, img = scan.preprocess(points_s, pose, self.cfg.preprocess, self.frames,
-                                                  image=self.static.evidence)
-        if self.static.evidence and not device and img is None:
-            img = scan.empty_image(self.static.image)  # no image: this frame sees nothing free
+        if self.frames == 0:  # the layout read off the first raw scan (`add_prepared` places the map frame)
+            self._begin(points_s, None)
+        prepared, pose = self._start.prepare(points_s, pose, self.frames)
+        return self.add_prepared(prepared, pose, since=t0)
+
+    def add_prepared(self, prepared: PreparedScan, pose, *, since: float | None = None) -> dict:
+        """`add_frame` of a scan made ready ahead (`start.prepare`, e.g. in a prefetch thread, as SLAM does
+        before it knows the pose) at pose [4, 4] T_world_sensor; since: when its preparation began."""
         t1 = time.perf_counter()
-        if self.frames == 0:
-            self.place_origin(pose)
-        self._bucket = scan.bucket_for(len(pts), self._bucket)
-        if device:
-            batch = scan.to_raw(pts, pose, self._origin, self._bucket)
-        else:
-            batch = scan.to_batch(pts, nrm, pose, self._origin, self._bucket, img)
-        self.submit(batch, points=len(pts), prepare_s=t1 - t0, main_s=time.perf_counter() - t0)
-        self._settle()
-        ((info, kept),) = self._take_unreported()
+        if self.frames == 0:  # (again where the map started from a first scan: this frame's pose places it)
+            self._begin(None, pose)
+        self._bucket = scan.bucket_for(len(prepared.points), self._bucket)
+        batch = self._start.batch(prepared, pose, self._origin, self._bucket)
+        self.submit(batch, points=len(prepared.points), prepare_s=t1 - (since or t1),
+                    main_s=time.perf_counter() - (since or t1))
+        ((info, kept),) = self.finish()
         return {**info, "kept": kept}
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
-               main_s: float = 0.0, pose=None, origin=None) -> list[tuple[dict, np.ndarray | None]]:
+               main_s: float = 0.0, pose=None, origin=None) -> list[tuple[N3Record, np.ndarray | None]]:
         """Dispatch one frame's program and return without waiting for it: batch is its scan as the
-        frame program takes it (`scan.Uploader`: padded, in the map frame of `place_origin`, on the
-        device), of `points` prepared points. Returns (record, kept) of the frames finished meanwhile (the
-        one before it, usually), oldest first: the record is the one kept in `timings`, kept ([M] bool,
-        None with `preprocess.device`) the prepared points that got training samples. prepare_s / wait_s:
-        seconds its preparation took / the loop waited for it; main_s: seconds of the main thread's before
-        the dispatch (in its record's total_s). pose, origin: the frame's pose and the origin its batch was
+        frame program takes it (`scan.Uploader`: padded, in the map frame, on the device), of `points`
+        prepared points. Returns (record, kept) of the frames finished meanwhile (the one before it,
+        usually), oldest first: the record is the one kept in `timings`, kept ([M] bool, None with
+        `preprocess.device`) the prepared points that got training samples. prepare_s / wait_s: seconds
+        its preparation took / the loop waited for it; main_s: seconds of the main thread's before the
+        dispatch (in its record's total_s). pose, origin: the frame's pose and the origin its batch was
         uploaded at (`Frame.origin`), which a map of submaps needs (`SubmapMapper`; one grid ignores them)."""
         if self.static.preprocess is not None and "scan_rows" not in self._headroom:
             # the first frame: size the preprocessed rows by what it keeps
@@ -176,12 +216,12 @@ class N3Mapper:
         self._collect()
         return self._take_unreported()
 
-    def finish(self) -> list[tuple[dict, np.ndarray | None]]:
+    def finish(self) -> list[tuple[N3Record, np.ndarray | None]]:
         """Wait for every frame submitted; (record, kept) of those not returned yet, oldest first."""
         self._settle()
         return self._take_unreported()
 
-    def _take_unreported(self) -> list[tuple[dict, np.ndarray | None]]:
+    def _take_unreported(self) -> list[tuple[N3Record, np.ndarray | None]]:
         out, self._unreported = self._unreported, []
         return out
 
@@ -195,7 +235,7 @@ class N3Mapper:
         device = self.static.preprocess is not None
         for d in self._pipe.done():
             fs, ts, tag = d.stats, d.train, d.tag
-            info = {"frame": tag["frame"], "points": int(fs.scan_points), "bucket": tag["bucket"],
+            info: N3Record = {"frame": tag["frame"], "points": int(fs.scan_points), "bucket": tag["bucket"],
                     "preprocess_s": tag["preprocess_s"],
                     "wait_s": tag["wait_s"], "dispatch_s": d.dispatch_s, "program_s": d.program_s,
                     "stats_s": d.stats_s, "map_s": d.dispatch_s + d.program_s,
@@ -338,18 +378,6 @@ class N3Mapper:
         if "submaps" in meta:
             raise CheckpointError(f"{path} holds a map of submaps: open it with jaxmap.n3.submap_mapper.load_map")
         return cls(cfg, state, timings)
-
-
-def origin_at(cfg: MapConfig, pose) -> np.ndarray:
-    """[3] float64 world position of the map frame of a map whose first frame is at `pose` [4, 4]
-    (`N3Mapper.place_origin`'s, computed on the host before the map exists)."""
-    static = core.N3Static.from_config(cfg)
-    return core.origin_vox_for(static, _first_position(pose)) * static.leaf
-
-
-def _first_position(pose) -> np.ndarray:
-    validate_pose(pose, "pose of frame 0")
-    return np.asarray(pose, np.float64)[:3, 3]
 
 
 def store_flat_after_full(store_pairs: list[int], tail: float = 0.5) -> tuple[bool, float]:

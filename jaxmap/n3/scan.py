@@ -1,9 +1,14 @@
-"""Host side of a frame: check and preprocess a scan, move it to the map frame, pad it to a bucket.
+"""Host side of a frame: how a map starts, and a scan checked, preprocessed, moved to the map frame and
+padded to a bucket.
 
-Preprocessing (crop, downsample, PCA normals; numpy/scipy) is ~0.2 s per city scan on 2 cores;
-`jaxmap map` runs it for the next frames in the frame loop's prefetch thread (`jaxmap.runs.n3.prepare_frame`,
-`jaxmap.frame_loop.Prefetcher`), off the critical path (numpy and scipy's k-d tree release the GIL),
-and then, in order, pads each scan, moves it to the map frame and uploads it (`Uploader`).
+`MapStart` settles a map from its config and its first frame before anything is compiled (the range-image
+layout, the map frame, the host or the device path); every way into an N3 map starts from one. Its
+`prepare` is the one place a scan takes the host path (crop, downsample, PCA normals; numpy/scipy, ~0.2 s a
+city scan on 2 cores) or the device path (only checked: the frame program preprocesses), and `batch_of`
+the one place it becomes the frame program's batch. `jaxmap map` prepares the next frames in the frame
+loop's prefetch thread (`jaxmap.frame_loop.Prefetcher`), off the critical path (numpy and scipy's k-d
+tree release the GIL), and then, in order, pads each scan, moves it to the map frame and uploads it
+(`Uploader`).
 """
 from __future__ import annotations
 
@@ -16,7 +21,9 @@ import numpy as np
 from jaxmap.errors import DataError
 from jaxmap.geometry import SE3, validate_pose
 from jaxmap.n3.scan_batch import RawScan, ScanBatch
+from jaxmap.n3.state import N3Static, origin_vox_for
 from jaxmap.preprocess import drop_veil, layout_of, preprocess_points, with_layout
+from jaxmap.preprocess_device import resolve
 from jaxmap.range_image import min_range_image
 from jaxmap.sizes import bucket_for  # noqa: F401  (re-exported: the frame loops pad with scan.bucket_for)
 
@@ -120,6 +127,89 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
     return ScanBatch(out_p, out_n, np.arange(bucket) < n, sensor, rot, image)
 
 
+@dataclasses.dataclass(frozen=True)
+class PreparedScan:
+    """A scan made ready on the host for an N3 map (`MapStart.prepare`), sensor frame: points [M, 3]
+    float32 (preprocessed; with `preprocess.device` only checked), normals [M, 3] float32 (None with
+    `preprocess.device`: the frame program estimates them), image [H, W] float32 the whole scan's range
+    image (the free-space evidence's; None when it is off)."""
+
+    points: np.ndarray
+    normals: np.ndarray | None = None
+    image: np.ndarray | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class MapStart:
+    """How an N3 map starts, settled before anything is compiled or allocated.
+
+    cfg: the MapConfig with its preprocessing's place decided (`preprocess_device.resolve`) and the
+    range-image layout read off the first scan (`resolve_layout`); static: its `N3Static`; anchor: [3]
+    float64 the first frame's sensor position in the world (None until a first pose is known), which
+    places the map frame (`origin_vox`: snapped to the coarsest voxel) and a map of submaps' first one. `jaxmap map`, mapping at given poses, SLAM and `N3Mapper` itself
+    start a map from one (`MapStart.of`, then `N3Mapper(start=...)`), and prepare its scans with it."""
+
+    cfg: object
+    static: N3Static
+    anchor: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, cfg, points_s=None, pose=None, frame: int = 0) -> "MapStart":
+        """The start of a map of `cfg` (a MapConfig) whose first frame is the raw scan points_s [N, 3]
+        (sensor frame) at pose [4, 4] T_world_sensor; either may be None (not known yet)."""
+        cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))
+        if points_s is not None:
+            cfg = resolve_layout(cfg, points_s, frame)
+        static = N3Static.from_config(cfg)
+        if pose is not None:
+            validate_pose(pose, "pose of frame 0")
+            pose = np.asarray(pose, np.float64)[:3, 3]
+        return cls(cfg, static, pose)
+
+    @property
+    def origin_vox(self) -> np.ndarray | None:
+        """[3] int32 the map frame's origin in leaf voxels (`state.origin_vox_for`; None: no first pose yet)."""
+        return None if self.anchor is None else origin_vox_for(self.static, self.anchor)
+
+    @property
+    def origin(self) -> np.ndarray | None:
+        """[3] float64 world position of the map frame (None: no first pose yet)."""
+        return None if self.anchor is None else self.origin_vox * self.static.leaf
+
+    @property
+    def device(self) -> bool:
+        """Whether the frame program preprocesses the scans (`preprocess.device`)."""
+        return self.static.preprocess is not None
+
+    def prepare(self, points_s, pose, frame: int) -> tuple[PreparedScan, np.ndarray]:
+        """(the scan points_s [N, 3] made ready for the map, pose [4, 4] float64 checked) of frame `frame`."""
+        if self.device:
+            pts, pose = check_frame(points_s, pose, frame)
+            return PreparedScan(pts), pose
+        pts, nrm, pose, img = preprocess(points_s, pose, self.cfg.preprocess, frame, image=self.static.evidence)
+        return PreparedScan(pts, nrm, img), pose
+
+    def batch(self, scan: PreparedScan, pose, origin_w, bucket: int):
+        """The frame program's batch of a prepared scan at pose, in the map frame at origin_w [3], `bucket`
+        rows. With the evidence on and no image, an image with no return: the frame sees nothing free."""
+        image = scan.image
+        if self.static.evidence and not self.device and image is None:
+            image = empty_image(self.static.image)
+        return batch_of(scan.points, scan.normals, image, pose, origin_w, bucket, self.device)
+
+    def uploader(self, bucket: int = 0) -> "Uploader":
+        """The frame loop's last reading stage for this map (`Uploader`), at its origin."""
+        return Uploader(self.origin, self.device, bucket)
+
+
+def batch_of(points_s, normals_s, image, pose, origin_w, bucket: int, raw: bool):
+    """A prepared scan (sensor frame) as the frame program takes it: a RawScan the program preprocesses
+    (`raw`, `preprocess.device`) or a ScanBatch, padded to `bucket` rows, in the map frame at origin_w."""
+    if raw:
+        return to_raw(points_s, pose, origin_w, bucket)
+    return to_batch(points_s, normals_s, pose, origin_w, bucket, image)
+
+
 class Uploader:
     """The last stage of reading ahead (`frame_loop.Prefetcher(then=...)`, one thread, frames in order):
     a prepared frame's scan padded to its bucket (the one of the scans before it while it fits:
@@ -134,8 +224,5 @@ class Uploader:
     def __call__(self, frame):
         self.bucket = bucket_for(len(frame.points), self.bucket)
         origin = self.origin_w  # read once: a map of submaps moves it (`follow`) from the main thread
-        if self.raw:
-            batch = to_raw(frame.points, frame.pose, origin, self.bucket)
-        else:
-            batch = to_batch(frame.points, frame.normals, frame.pose, origin, self.bucket, frame.image)
+        batch = batch_of(frame.points, frame.normals, frame.image, frame.pose, origin, self.bucket, self.raw)
         return dataclasses.replace(frame, batch=jax.device_put(batch), origin=origin)

@@ -2,6 +2,7 @@
 
     m = SubmapMapper(cfg, directory="runs/x/submaps")   # or load_map("runs/x/checkpoint") of such a run
     m.add_frame(points_s, pose)            # maps into the submap the pose falls in (a new one, or an old one again)
+    m.add_prepared(scan, pose, stay=True)  # a scan made ready ahead, into the active submap whatever its pose
     sdf, valid = m.sdf(points_w)           # blended over the submaps that hold the points
     mesh = m.mesh()                        # streamed through the mesher one submap at a time
 
@@ -29,21 +30,20 @@ class SubmapMapper(N3Mapper):
     """An N3Mapper over a chain of submaps. directory: where the submaps are written (a run's
     `submaps/`; default a new temporary folder); index: a checkpoint's submap index (`load_map`)."""
 
-    def __init__(self, cfg=None, state=None, timings=None, first_scan=None, first_frame=None, *,
+    def __init__(self, cfg=None, state=None, timings=None, *, start=None, first_scan=None, first_batch=None,
                  directory: str | None = None, index: dict | None = None):
         self._subs, self._uploader, self._next_pose, self._again = None, None, None, False
-        super().__init__(cfg, state, timings, first_scan=first_scan, first_frame=first_frame)
+        super().__init__(cfg, state, timings, start=start, first_scan=first_scan, first_batch=first_batch)
         self._local = self.frames          # frames submitted to the active submap's state (its own count)
         self._local_of: dict[int, int] = {}  # frame (the whole map's count) -> its count in its submap
         self._subs = Submaps(self.static, self.cfg, directory or tempfile.mkdtemp(prefix="jaxmap-submaps-"),
                              live=lambda: self.state)
-        first_pose = first_frame.pose if first_frame is not None else first_scan[1] if first_scan else None
         if index is not None:
             self._subs.restore(index)
             # the frames of the whole map (the state's count is the active submap's own)
             self.frames = int(index.get("frames", sum(len(i.frames) for i in self._subs.infos)))
-        elif self.frames == 0 and first_pose is not None:
-            self._subs.active = self._subs.start(np.asarray(first_pose, np.float64)[:3, 3])
+        elif self.frames == 0 and self.start.anchor is not None:
+            self._subs.active = self._subs.start(self.start.anchor)
 
     @property
     def submaps(self) -> Submaps:
@@ -53,33 +53,29 @@ class SubmapMapper(N3Mapper):
         """Keep the frame loop's `scan.Uploader` at the origin of the submap being mapped."""
         self._uploader = uploader
 
-    def place_origin(self, pose) -> None:
-        super().place_origin(pose)
-        if self._subs is not None and not self._subs.infos:
-            self._subs.active = self._subs.start(np.asarray(pose, np.float64)[:3, 3])
+    def _place(self, position_w) -> None:
+        super()._place(position_w)
+        if self._subs is not None:
+            self._subs.static, self._subs.cfg = self.static, self.cfg  # the submaps are written with the layout
+            if not self._subs.infos:
+                self._subs.active = self._subs.start(np.asarray(position_w, np.float64))
 
-    def fix_layout(self, points_s) -> None:
-        super().fix_layout(points_s)
-        self._subs.static, self._subs.cfg = self.static, self.cfg  # the submaps are written with the layout
-
-    def add_frame(self, points_s, pose, prepared: tuple | None = None, stay: bool = False) -> dict:
-        """`N3Mapper.add_frame` with pose [4, 4] T_world_sensor (or prepared's) in the world: mapped into
-        the submap the pose falls in (stay: the active one, e.g. a frame of it added again), at the pose in
-        that submap's frame (a moved submap's, not the world's)."""
-        pose = np.asarray(prepared[2] if pose is None else pose, np.float64)
+    def add_prepared(self, prepared, pose, *, since: float | None = None, stay: bool = False) -> dict:
+        """`N3Mapper.add_prepared` with pose [4, 4] T_world_sensor in the world: mapped into the submap the
+        pose falls in (stay: the active one, e.g. a frame of it added again), at the pose in that submap's
+        frame (a moved submap's, not the world's)."""
+        pose = np.asarray(pose, np.float64)
         if self.frames and not stay:
             self._enter(pose)
-        self._next_pose, self._again = pose, stay  # for `submit`, which `N3Mapper.add_frame` calls
+        self._next_pose, self._again = pose, stay  # for `submit`, which `N3Mapper.add_prepared` calls
         local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
-        if prepared is not None:
-            prepared = (prepared[0], prepared[1], local, *prepared[3:])
-        return super().add_frame(points_s, local, prepared)
+        return super().add_prepared(prepared, local, since=since)
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
                pose=None, origin=None) -> list:
         """`N3Mapper.submit`, first moving to the submap the frame's pose [4, 4] (T_world_sensor) falls in;
         origin: [3] the map frame the batch was uploaded in (`Frame.origin`; moved when it is another's)."""
-        if pose is None:  # from `add_frame`, which has entered the frame's submap
+        if pose is None:  # from `add_prepared`, which has entered the frame's submap
             pose, self._next_pose = self._next_pose, None
         elif self.frames:
             self._enter(np.asarray(pose, np.float64))
@@ -87,7 +83,7 @@ class SubmapMapper(N3Mapper):
             raise ValueError("SubmapMapper.submit needs the frame's pose (pose=T_world_sensor)")
         if origin is not None and not np.array_equal(self._subs.infos[self._subs.active].pose, np.eye(4)):
             raise ValueError("a batch uploaded in the world frame cannot go into a moved submap: map it with "
-                             "add_frame (which places the pose in the submap's frame)")
+                             "add_prepared (which places the pose in the submap's frame)")
         if origin is not None and not np.array_equal(np.asarray(origin, np.float64), self._origin):
             batch = shift(batch, (np.asarray(origin, np.float64) - self._origin).astype(np.float32))
         self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames, again=self._again)

@@ -21,7 +21,7 @@ import numpy as np
 
 from jaxmap.config import ImtConfig, save_config
 from jaxmap.finish import finish_run
-from jaxmap.frame_loop import (Checkpoints, Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer,
+from jaxmap.frame_loop import (Checkpoints, Frame, FramesRun, Prefetcher, Progress, open_run_sequence, open_viewer,
                                run_frames)
 from jaxmap.imt.mapper import ImtMapper
 
@@ -41,7 +41,7 @@ def fuse_frame(mapper: ImtMapper, frame: Frame) -> tuple[dict, np.ndarray]:
 
 
 def fuse_sequence(mapper: ImtMapper, seq, poses=None, progress: bool = True, desc: str = "imt", viewer=None,
-                  checkpoints: Checkpoints | None = None, t_start: float | None = None) -> LoopResult:
+                  checkpoints: Checkpoints | None = None, t_start: float | None = None) -> FramesRun:
     """Fuse every frame of `seq` into `mapper` at the sequence's poses (or `poses` [n, 4, 4]) through the
     frame loop, each prepared ahead in the prefetch threads. viewer: `jaxmap.viewer.ViewerHooks` shown
     every frame (None = no viewer)."""

@@ -16,27 +16,25 @@ A run directory holds:
 """
 from __future__ import annotations
 
-import collections
-import dataclasses
 import functools
 import logging
 import os
 import time
 
-import numpy as np
 
 from jaxmap import compile_cache
 from jaxmap.config import MapConfig, save_config, shipped_config_path, to_dict
 from jaxmap.errors import CheckpointError, NoCheckpointError
 from jaxmap.finish import finish_run
-from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
+from jaxmap.frame_loop import (Checkpoints, Frame, Prefetcher, Progress, SubmitSteps, open_run_sequence, open_viewer,
+                               prepared_frame, run_frames)
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import dynamic
-from jaxmap.n3 import checkpoint, scan
+from jaxmap.n3 import checkpoint
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
-from jaxmap.n3.mapper import N3Mapper, origin_at
+from jaxmap.n3.mapper import N3Mapper
+from jaxmap.n3.scan import MapStart
 from jaxmap.n3.submap_mapper import SubmapMapper, load_map
-from jaxmap.preprocess_device import resolve
 
 log = logging.getLogger("jaxmap")
 
@@ -47,44 +45,37 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
 
     Frames are read, preprocessed and uploaded ahead in background threads (`frame_loop.Prefetcher`,
     from the start, while the frame program compiles), and each frame's program is dispatched before
-    the previous one's statistics are read (`MapSteps`), so the device maps frame after frame while the host
-    prepares the next ones and keeps the books. `wall_s` in the summary is the wall-clock time of the
-    mapping loop, compilation and checkpoints included: what a user waits.
+    the previous one's statistics are read (`frame_loop.SubmitSteps`), so the device maps frame after frame
+    while the host prepares the next ones and keeps the books. `wall_s` in the summary is the wall-clock
+    time of the mapping loop, compilation and checkpoints included: what a user waits.
     resume: continue from the newest intact checkpoint in out_dir (`resume_mapper`). Ctrl-C and SIGTERM
     (in the main thread) stop the loop after the frame being mapped, save a checkpoint and re-raise
     (`jaxmap.rundir.Interrupted`). The caller owns out_dir (`jaxmap.rundir.claim` in the CLI).
     """
     os.makedirs(out_dir, exist_ok=True)
-    cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))  # device: auto decided (config.yaml says which)
-    device = cfg.preprocess.device == "true"
     ckpt, t_start, n_compiles = os.path.join(out_dir, "checkpoint"), time.perf_counter(), len(COMPILE_SECONDS)
     seq = open_run_sequence(cfg)
     labeller = dynamic.labeller_for(cfg.data.path)
     scores = dynamic.PointScores() if labeller is not None else None
     if resume:
-        mapper = resume_mapper(out_dir, cfg)
+        mapper = resume_mapper(out_dir, cfg, seq)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
-        if mapper.frames == 0 and len(seq):
-            mapper.fix_layout(seq.frame(0).points)
-            mapper.place_origin(seq.frame(0).pose)
-        cfg = mapper.cfg
-        uploader = scan.Uploader(mapper.origin, device, mapper.bucket)
-        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(cfg, labeller), then=uploader)
+        uploader = mapper.uploader()
+        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(mapper.start, labeller), then=uploader)
     else:
         # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
         # is the first pose's, and the first prepared frame gives the program its shapes.
-        first = seq.frame(0) if len(seq) else None
-        if first is not None:
-            cfg = scan.resolve_layout(cfg, first.points)  # the range-image layout read off the first scan
-        origin = origin_at(cfg, first.pose) if first is not None else np.zeros(3)
-        uploader = scan.Uploader(origin, device)
-        frames = Prefetcher(seq, 0, len(seq), _loader(cfg, labeller), then=uploader)
+        start = first_start(cfg, seq)
+        uploader = start.uploader()
+        frames = Prefetcher(seq, 0, len(seq), _loader(start, labeller), then=uploader)
         try:
-            mapper = new_mapper(cfg, out_dir, first_frame=frames.first())
+            first = frames.first()
+            mapper = new_mapper(start, out_dir, first_batch=first.batch if first is not None else None)
         except BaseException:
             frames.close()
             raise
-        save_config(cfg, os.path.join(out_dir, "config.yaml"))
+        save_config(mapper.cfg, os.path.join(out_dir, "config.yaml"))
+    cfg = mapper.cfg
     mapper.follow(uploader)  # (a map of submaps moves the uploads' origin to the submap it maps into)
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
@@ -93,7 +84,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                         final=lambda: mapper.save(ckpt, background=True, copy=False))
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    loop = run_frames(frames, MapSteps(mapper, scores), total=len(seq), start=mapper.frames, progress=bar,
+    steps = SubmitSteps(mapper, on_finished=_scorer(mapper, scores))
+    loop = run_frames(frames, steps, total=len(seq), start=mapper.frames, progress=bar,
                       viewer=viewer, checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
@@ -102,82 +94,49 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                       wait_saves=checkpoint.wait_for_saves)
 
 
-def new_mapper(cfg: MapConfig, run_dir: str, **kw) -> N3Mapper:
-    """The empty map of a run of `cfg` in `run_dir`: one grid (N3Mapper), or with submaps.enabled a
-    SubmapMapper writing its submaps to run_dir/submaps. kw: N3Mapper's (first_frame, first_scan)."""
-    if cfg.submaps.enabled:
-        return SubmapMapper(cfg, directory=os.path.join(run_dir, "submaps"), **kw)
-    return N3Mapper(cfg, **kw)
+def first_start(cfg: MapConfig, seq, poses=None) -> MapStart:
+    """The `MapStart` of a map of `seq` (its first frame's scan, at poses[0] when given, else its pose)."""
+    if not len(seq):
+        return MapStart.of(cfg)
+    first = seq.frame(0)
+    return MapStart.of(cfg, first.points, first.pose if poses is None else poses[0])
 
 
-def _loader(cfg: MapConfig, label=None, poses=None):
-    """The `Prefetcher` loader of a run of `cfg` (`prepare_frame`, with the range images the map needs)."""
-    from jaxmap.n3.state import N3Static
+def new_mapper(start: MapStart, run_dir: str, **kw) -> N3Mapper:
+    """The empty map of a run started at `start` in `run_dir`: one grid (N3Mapper), or with submaps.enabled a
+    SubmapMapper writing its submaps to run_dir/submaps. kw: N3Mapper's (first_batch)."""
+    if start.cfg.submaps.enabled:
+        return SubmapMapper(start=start, directory=os.path.join(run_dir, "submaps"), **kw)
+    return N3Mapper(start=start, **kw)
 
-    evidence = N3Static.from_config(cfg).evidence
-    return functools.partial(prepare_frame, cfg.preprocess, image=evidence, label=label, poses=poses)
+
+def _loader(start: MapStart, label=None, poses=None):
+    """The `Prefetcher` loader of a map started at `start` (`frame_loop.prepared_frame` with its `prepare`)."""
+    return functools.partial(prepared_frame, start.prepare, label=label, poses=poses)
 
 
-def prepare_frame(cfg_preprocess, seq, i: int, image: bool = False, label=None, poses=None) -> Frame:
-    """`Prefetcher` loader of frame i: read, checked and preprocessed on the host, with its range image
-    when `image` (with `preprocess.device` true only read and checked: the frame program preprocesses,
-    and `normals` is None); at poses[i] when `poses` [N, 4, 4] is given, else at the sequence's pose.
-    label: a `jaxmap.metrics.dynamic.Labeller` (the sequence has moving objects): `dynamic` labels its
-    points here, in the prefetch thread, off the mapping loop."""
-    fr = seq.frame(i)
-    pose = fr.pose if poses is None else poses[i]
-    img = None
-    if cfg_preprocess.device == "true":
-        (pts, pose), nrm = scan.check_frame(fr.points, pose, i), None
-    else:
-        pts, nrm, pose, img = scan.preprocess(fr.points, pose, cfg_preprocess, i, image=image)
-    return Frame(i, int(fr.index), pts, pose, nrm, img,
-                 dynamic=label(pts, pose, int(fr.index)) if label is not None else None)
+def _scorer(mapper: N3Mapper, scores: dynamic.PointScores | None):
+    """`SubmitSteps`' on_finished that counts each frame's labelled points against those the map trained on
+    (None without moving objects)."""
+    if scores is None:
+        return None
+
+    def add(frame: Frame, record: dict, kept) -> None:
+        if frame.dynamic is not None:
+            scores.add(frame.dynamic, kept, dynamic.voxel_keys(mapper.voxel_coords(frame.points, frame.pose)))
+
+    return add
 
 
 def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
     """A new N3 map of every frame of `seq` at `poses` [N, 4, 4] (instead of the sequence's), the frames
     read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
-    (no checkpoints); a map of submaps with `submaps.enabled`. Returns (N3Mapper, frame_loop.LoopResult)."""
-    cfg = dataclasses.replace(cfg, preprocess=resolve(cfg.preprocess))
-    if len(seq):
-        cfg = scan.resolve_layout(cfg, seq.frame(0).points)
-    mapper = new_mapper(cfg, cfg.output)  # (with submaps.enabled, written to cfg.output's submaps/)
-    if len(seq):
-        mapper.place_origin(poses[0])
-    uploader = scan.Uploader(mapper.origin, cfg.preprocess.device == "true")
+    (no checkpoints); a map of submaps with `submaps.enabled`. Returns (N3Mapper, frame_loop.FramesRun)."""
+    mapper = new_mapper(first_start(cfg, seq, poses), cfg.output)  # (with submaps.enabled, in cfg.output's submaps/)
+    uploader = mapper.uploader()
     mapper.follow(uploader)
-    frames = Prefetcher(seq, 0, len(seq), _loader(cfg, poses=poses), then=uploader)
-    return mapper, run_frames(frames, MapSteps(mapper), total=len(seq), progress=Progress(desc, progress))
-
-
-class MapSteps:
-    """The N3 step of the frame loop (`frame_loop.Steps`): each frame's program is dispatched as soon as
-    its scan is on the device (`N3Mapper.submit`; the scan was prepared and uploaded ahead by
-    `prepare_frame` and `scan.Uploader`), its record comes back a frame later. With `scores`, each
-    frame's labelled points are counted against those the mapper trained on."""
-
-    def __init__(self, mapper: N3Mapper, scores: dynamic.PointScores | None = None):
-        self.mapper, self.scores = mapper, scores
-        self._frames: collections.deque[Frame] = collections.deque()  # submitted, record not back yet
-
-    def submit(self, frame: Frame) -> list:
-        self._frames.append(frame)
-        return self._paired(self.mapper.submit(frame.batch, points=len(frame.points), prepare_s=frame.prepare_s,
-                                               wait_s=frame.wait_s, pose=frame.pose, origin=frame.origin))
-
-    def drain(self) -> list:
-        return self._paired(self.mapper.finish())
-
-    def _paired(self, finished: list) -> list:
-        out = []
-        for record, kept in finished:
-            frame = self._frames.popleft()
-            if self.scores is not None and frame.dynamic is not None:
-                self.scores.add(frame.dynamic, kept,
-                                dynamic.voxel_keys(self.mapper.voxel_coords(frame.points, frame.pose)))
-            out.append((frame, record, frame.pose))
-        return out
+    frames = Prefetcher(seq, 0, len(seq), _loader(mapper.start, poses=poses), then=uploader)
+    return mapper, run_frames(frames, SubmitSteps(mapper), total=len(seq), progress=Progress(desc, progress))
 
 
 def city_config_path() -> str | None:
@@ -196,17 +155,17 @@ def no_usable_checkpoint(run_dir: str, e: CheckpointError) -> CheckpointError:
     return CheckpointError(f"no usable checkpoint in {run_dir} ({faults}); start again with --overwrite")
 
 
-def resume_mapper(run_dir: str, cfg: MapConfig):
+def resume_mapper(run_dir: str, cfg: MapConfig, seq):
     """The N3Mapper of the newest intact checkpoint of run directory `run_dir` (falling back to the
-    previous one with a warning), or a new one at frame 0 (with a warning) when the run never saved
-    one. CheckpointError when every checkpoint is damaged, or when the checkpoint's config is not
+    previous one with a warning), or a new one at frame 0 of `seq` (with a warning) when the run never
+    saved one. CheckpointError when every checkpoint is damaged, or when the checkpoint's config is not
     `cfg` (the run's config.yaml): then the directory mixes two runs."""
     try:
         mapper = load_map(os.path.join(run_dir, "checkpoint"))
     except NoCheckpointError:
         log.warning("%s: no checkpoint yet (the run stopped before its first one, saved every %d frames): "
                     "mapping again from frame 0", run_dir, cfg.checkpoint_every)
-        return new_mapper(cfg, run_dir)
+        return new_mapper(first_start(cfg, seq), run_dir)
     except CheckpointError as e:
         raise no_usable_checkpoint(run_dir, e) from None
     a, b = to_dict(mapper.cfg), to_dict(cfg)

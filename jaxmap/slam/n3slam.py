@@ -45,6 +45,7 @@ from jaxmap.records import medians
 from jaxmap.geometry import compose, orthonormalize
 from jaxmap.n3 import scan
 from jaxmap.n3.mapper import N3Mapper
+from jaxmap.n3.scan import MapStart, PreparedScan
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
 
@@ -76,13 +77,14 @@ class SlamFrame(Frame):
     odometry_scan: object = None
 
 
-def prepare_slam_frame(cfg: SlamConfig, cfg_preprocess, seq, i: int, image: bool = False) -> SlamFrame:
-    """`Prefetcher` loader: the frame as read, its N3-preprocessed points and normals (and range image),
-    and the odometry's scan, each made once, off the main thread."""
+def prepare_slam_frame(cfg: SlamConfig, start: MapStart, seq, i: int) -> SlamFrame:
+    """`Prefetcher` loader: the frame as read, its points and normals (and range image) made ready for the
+    N3 map (`start.prepare`, before the pose is known), and the odometry's scan, each made once, off the
+    main thread."""
     fr = seq.frame(i)
-    pts, nrm, _, img = scan.preprocess(fr.points, np.eye(4), cfg_preprocess, i, image=image)
+    ready, _ = start.prepare(fr.points, np.eye(4), i)
     raw = scan.clean_points(fr.points, i)
-    return SlamFrame(i, int(fr.index), raw, fr.pose, image=img, prepared=(pts, nrm),
+    return SlamFrame(i, int(fr.index), raw, fr.pose, image=ready.image, prepared=(ready.points, ready.normals),
                      odometry_scan=Scan(raw, cfg.frontend.odometry))
 
 
@@ -197,7 +199,7 @@ class N3SlamStep:
     def _map(self, i: int, pose: np.ndarray, **kw) -> dict:
         """Map frame i (of this run) at world pose [4, 4]; notes where its pairs went (submap, number, pose
         in the submap's frame)."""
-        info = self.mapper.add_frame(None, None, prepared=(*self.prepared[i], pose, self.images[i]), **kw)
+        info = self.mapper.add_prepared(PreparedScan(*self.prepared[i], self.images[i]), pose, **kw)
         self.submap[i] = int(info.get("submap") or 0)
         self.counter[i] = int(info["frame"] if info.get("submap_frame") is None else info["submap_frame"])
         S = self.mapper.submaps.infos[self.submap[i]].pose if self.cfg.n3_loop == "submaps" else np.eye(4)
@@ -277,14 +279,14 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     """The front end, tracking and the online N3 map over the sequence (from the frame after the last of
     `step`, a resumed run's, else from the start); out_dir: where Ctrl-C and the end save the run
     (`save_slam`; None: not saved). Returns the trajectory, the odometry alone, per-loop and per-frame
-    tracking records, and the LoopResult."""
+    tracking records, and the frame loop's `FramesRun`."""
     if track is None and cfg.n3_track:
         track = default_tracker(cfg.n3_track_min_valid)
     if step is None:
         step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
     step.mapper, step.track, step.viewer, step.last = mapper, track, viewer, len(seq) - 1
     start = len(step.prepared)
-    load = lambda s, i: prepare_slam_frame(cfg, mapper.cfg.preprocess, s, i, mapper.static.evidence)  # noqa: E731
+    load = lambda s, i: prepare_slam_frame(cfg, mapper.start, s, i)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
     saves = None if out_dir is None else Checkpoints(
         save=lambda background: save_slam(step, out_dir), path=os.path.join(out_dir, "checkpoint"),

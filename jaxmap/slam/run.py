@@ -40,7 +40,7 @@ import numpy as np
 from jaxmap.config import SlamConfig, save_config
 from jaxmap.errors import DataError, JaxmapError
 from jaxmap.finish import finish_run
-from jaxmap.frame_loop import Frame, LoopResult, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
+from jaxmap.frame_loop import Frame, FramesRun, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
@@ -233,7 +233,7 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     viewer = open_viewer(view, mapper)
     res = run(cfg, seq, out_dir, mapper, progress, viewer=viewer)
     mapper.save(os.path.join(out_dir, "checkpoint"))
-    loop = LoopResult(len(res["trajectory"]), time.perf_counter() - t_start)
+    loop = FramesRun(len(res["trajectory"]), time.perf_counter() - t_start)
     traj = np.asarray(res["trajectory"])
     out = {"run": out_dir, "frames": len(seq), "keyframes": len(mapper.store), "loops": res["loops"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
