@@ -59,6 +59,7 @@ def test_a_car_that_left_after_its_voxels_left_the_window_leaves_no_surface(with
     m, c = with_evidence
     assert _faces_in(c, LEAVES, 0.45) <= 10, _faces_in(c, LEAVES, 0.45)
     assert sum(t["voxels_void"] > 0 for t in m.timings) > 0
+    assert all(t["voxels_untested"] == 0 for t in m.timings)   # the record counts them; here all are tested
     _, c_off = without_evidence
     assert _faces_in(c_off, LEAVES, 0.45) > 500, _faces_in(c_off, LEAVES, 0.45)
 

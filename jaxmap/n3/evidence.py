@@ -53,7 +53,8 @@ RUN_CAP = 1 << 14          # free_run saturates here (int32; a voxel seen free f
 RAISE_PER_FRAME = 4096     # voxels whose pairs are raised per frame (the rest next frame: `raised` says)
 TESTED_PER_FRAME = 1 << 16  # voxels tested against a frame's range image at most (those within
                             # `evidence.max_range_m` that `may_be_free` lets through: 18-31 k of 105-122 k on
-                            # the city and the traffic street; when more are, a different part of them each frame)
+                            # the city and the traffic street; when more are, a different part of them each frame,
+                            # and the frame's `Counts.untested` says how many waited)
 
 
 @flax.struct.dataclass

@@ -1,7 +1,8 @@
 """Putting one scan into the N3 map: sample the frame's training pairs, allocate leaf voxels and their
 corner feature rows (fixed-capacity hash tables), store the pairs in their voxels' blocks, slide the
 window and let the frame's free space carve the pairs it contradicts (`window.carve`: what moved
-away is erased). Pure functions, traced inside the frame program (`jaxmap.n3.frame.step`).
+away is erased), then count the frame's free-space evidence (`jaxmap.n3.evidence.update`). Pure functions,
+traced inside the frame program (`jaxmap.n3.frame.step`).
 
 Capacities are fixed inside jit. Nothing is dropped when one runs out: `integrate` is all or
 nothing for the pair store, hash inserts revert themselves on overflow, corner allocation is a
