@@ -11,9 +11,10 @@ read off those (`estimate_layout`): the sensor's beam table (each cluster's cent
 (a return belongs to the nearest beam: row boundaries halfway between neighbouring beams, however
 unevenly the sensor spaces them: KITTI's HDL-64E has two blocks 0.33 and 0.5 deg apart, a VLP-32C
 beams 0.33 deg apart at the horizon and up to 9 deg apart below), and one column per azimuth step.
-Neighbours and footprints are counted in beams, never in a uniform angle. A sensor without beams (a
-depth camera, a solid-state LiDAR) gets a uniform spherical grid at its angular sampling. Pixels with
-several returns keep the nearest (`min`); pixels without a return are `inf`: nothing is known there.
+Neighbours (and the free-space evidence's footprints, `jaxmap.n3.evidence`) are counted in beams, never in
+a uniform angle. A sensor without beams (a depth camera, a solid-state LiDAR) gets a uniform spherical grid
+at its angular sampling. Pixels with several returns keep the nearest (`min`); pixels without a return
+are `inf`: nothing is known there.
 
 Everything is in the sensor frame (x forward, z up): elevation = atan2(z, |xy|), azimuth = atan2(y, x).
 The functions take `xp` (numpy or jax.numpy) where both sides need them: the host preprocesses with
@@ -78,7 +79,7 @@ class Layout:
         return [math.degrees(hi - lo) for lo, hi in zip(self.beams[:-1], self.beams[1:])]
 
 
-def _angles(points_s, xp=np):
+def angles(points_s, xp=np):
     """(elevation [N], azimuth [N], range [N]) of sensor-frame points [N, 3]."""
     x, y, z = points_s[:, 0], points_s[:, 1], points_s[:, 2]
     horiz = xp.sqrt(x * x + y * y)
@@ -89,7 +90,7 @@ def estimate_layout(points_s: np.ndarray) -> Layout:
     """The range-image layout of one raw scan (sensor frame, [N, 3]; the whole scan, before any crop or
     downsampling, as it left the sensor). ValueError when the scan has too few returns to tell."""
     p = np.asarray(points_s, np.float64).reshape(-1, 3)
-    el, az, rng = _angles(p)
+    el, az, rng = angles(p)
     ok = np.isfinite(rng) & (rng > MIN_RANGE_M)
     el, az = el[ok], az[ok]
     if len(el) < 100:
@@ -151,7 +152,7 @@ def beam_layout(elevations, cols: int, az0: float = -math.pi) -> Layout:
                   elev_step=float(np.median(np.diff(b))), az0=float(az0), beams=tuple(float(x) for x in b))
 
 
-def _rows_of(el, layout: Layout, xp):
+def rows_of(el, layout: Layout, xp):
     """(row [N] int32, inside [N] bool) of elevations [N] (radians): the nearest beam's row (boundaries
     halfway between beams), or the uniform grid's."""
     if layout.beams:
@@ -166,8 +167,8 @@ def _rows_of(el, layout: Layout, xp):
 def pixels(points_s, layout: Layout, xp=np):
     """(row [N] int32, col [N] int32, range [N] float32, inside [N] bool: the row is in the image) of
     sensor-frame points [N, 3]."""
-    el, az, rng = _angles(points_s, xp)
-    row, inside = _rows_of(el, layout, xp)
+    el, az, rng = angles(points_s, xp)
+    row, inside = rows_of(el, layout, xp)
     col = xp.floor((az - layout.az0) / layout.col_step).astype(xp.int32) % layout.cols
     return row, col, rng.astype(xp.float32), inside
 
@@ -196,7 +197,7 @@ def min_range_image_jax(points_s, valid, layout: Layout):
     return image.reshape(layout.rows, layout.cols)
 
 
-def _neighbour(image, dr: int, dc: int, xp):
+def neighbour(image, dr: int, dc: int, xp):
     """The image shifted so that out[r, c] = image[r + dr, c + dc]: columns wrap around (a full turn),
     rows beyond the image are inf."""
     out = xp.roll(image, -dc, axis=1) if dc else image
@@ -243,7 +244,7 @@ def _continuation(image, layout: Layout, dr: int, dc: int, xp):
     (inf: no neighbour). Along a beam their range line (2 a1 - a2: evenly spaced azimuths); across the
     beams their inverse ranges at the pixel's beam elevation; the neighbour's range when the pixel beyond
     it is empty."""
-    a1, a2 = _neighbour(image, dr, dc, xp), _neighbour(image, 2 * dr, 2 * dc, xp)
+    a1, a2 = neighbour(image, dr, dc, xp), neighbour(image, 2 * dr, 2 * dc, xp)
     both = xp.isfinite(a1) & xp.isfinite(a2)
     if dc:
         line = 2.0 * a1 - xp.where(both, a2, 0.0)
@@ -263,15 +264,15 @@ def _across_gap(image, raw, layout: Layout, dr: int, dc: int, xp):
     both direct neighbours, the surfaces it mixes, and one beside a mixed pixel dropped in the first pass
     is no gap. Returns the predicted range at each pixel (inf: none)."""
     def first_return(sign):
-        found, ang = _neighbour(image, sign * dr, sign * dc, xp), _offset_angle(layout, sign, dr, dc, xp)
+        found, ang = neighbour(image, sign * dr, sign * dc, xp), _offset_angle(layout, sign, dr, dc, xp)
         for j in range(2, GAP_PIXELS + 1):
             take = ~xp.isfinite(found)
-            found = xp.where(take, _neighbour(image, j * sign * dr, j * sign * dc, xp), found)
+            found = xp.where(take, neighbour(image, j * sign * dr, j * sign * dc, xp), found)
             ang = xp.where(take, _offset_angle(layout, j * sign, dr, dc, xp), ang)
         return found, ang
 
     (a_l, e_l), (a_r, e_r) = first_return(-1), first_return(1)
-    gap = ~xp.isfinite(_neighbour(raw, -dr, -dc, xp)) | ~xp.isfinite(_neighbour(raw, dr, dc, xp))
+    gap = ~xp.isfinite(neighbour(raw, -dr, -dc, xp)) | ~xp.isfinite(neighbour(raw, dr, dc, xp))
     both = xp.isfinite(a_l) & xp.isfinite(a_r)
     span = xp.where(both, e_r - e_l, 1.0)
     t = xp.where(xp.abs(span) > 0, -e_l / xp.where(xp.abs(span) > 0, span, 1.0), 0.5)
@@ -315,7 +316,7 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np, image=N
         # a return with no neighbour at all in its row and column says nothing against it (a lone beam hit)
         has_any = xp.zeros(image.shape, bool)
         for dr, dc in ((0, -1), (0, 1), (-1, 0), (1, 0)):
-            has_any = has_any | xp.isfinite(_neighbour(image, dr, dc, xp))
+            has_any = has_any | xp.isfinite(neighbour(image, dr, dc, xp))
         return ok | ~has_any.reshape(-1)[flat] | ~inside
 
     # twice: a mixed pixel that a neighbouring mixed pixel happened to continue loses that support once
@@ -324,148 +325,3 @@ def veil_keep(points_s, layout: Layout, tol_m: float, valid=None, xp=np, image=N
     keep = valid & supported(raw, raw)
     return keep & supported(image_of(keep), raw)
 
-
-# -------------------------------------------------------------------------------------------------
-# footprints: the nearest return within a window around each pixel (the free-space evidence's test)
-# -------------------------------------------------------------------------------------------------
-
-FOOTPRINTS = (1, 2, 3, 4, 6, 8, 11, 16, 23, 32)   # window half-widths, in pixels of the coarser axis
-
-
-def footprint_windows(layout: Layout) -> tuple:
-    """((rows, cols) half-widths in pixels, ...) of the footprint levels: level j spans at least
-    FOOTPRINTS[j] * s radians on both axes, s the larger of the row and column steps."""
-    s = max(layout.elev_step, layout.col_step)
-    return tuple((int(math.ceil(k * s / layout.elev_step - 1e-6)), int(math.ceil(k * s / layout.col_step - 1e-6)))
-                 for k in FOOTPRINTS)
-
-
-def _window_min(img, k: int, axis: int, xp):
-    """min over [c - k, c + k] along `axis` (columns wrap; rows are padded by the caller) by a sparse
-    table: two overlapping windows of 2^p cells."""
-    d = (1, 0) if axis == 0 else (0, 1)
-    length = 2 * k + 1
-    table = img
-    p = 0
-    while (2 << p) <= length:
-        table = xp.minimum(table, _neighbour(table, (1 << p) * d[0], (1 << p) * d[1], xp))
-        p += 1
-    a = -k
-    b = k - (1 << p) + 1
-    return xp.minimum(_neighbour(table, a * d[0], a * d[1], xp), _neighbour(table, b * d[0], b * d[1], xp))
-
-
-DROPOUT_ROWS = 2   # a dropout takes the nearest return this many rows above or below it in its column
-
-
-def dropouts_block(image, layout: Layout, xp=np):
-    """The range image [rows, cols] with its dropouts filled for the free-space test. An empty pixel with a
-    return anywhere above it in its column is a dropout (a dark or wet surface, grazing incidence): the
-    ray above it met something, so this one, pointing lower, met something too, not free space. It takes
-    the nearest return within DROPOUT_ROWS rows of it in its column (the rays just above and below met the
-    surface it lost), range 0 (blocking) when there is none. An empty pixel with nothing above it (the
-    sky, or nothing within range along an open street: the rays that free the voxels a car left) stays
-    inf. Without this the rays beside a lost return, which went farther, free the voxel it would have
-    hit: the ground and dark cars of the suite's artifact city lose their voxels."""
-    finite = xp.isfinite(image)
-    above = xp.cumsum(finite[::-1].astype(xp.int32), axis=0)[::-1] - finite.astype(xp.int32) > 0
-    near = _window_min(image, DROPOUT_ROWS, 0, xp)
-    fill = xp.where(xp.isfinite(near), near, xp.zeros((), image.dtype))
-    return xp.where(above & ~finite, fill, image)
-
-
-def min_pool_levels(image, layout: Layout, xp=np):
-    """[len(FOOTPRINTS), rows, cols]: level j holds at each pixel the nearest return within its window
-    (`footprint_windows`). Columns wrap around (a full turn); rows beyond the image count as a return at
-    range 0 (outside the sensor's field of view nothing is seen, so a window reaching there is never free)."""
-    wins = footprint_windows(layout)
-    pad = max(kr for kr, _ in wins) + 1
-    rows = image.shape[0]
-    unseen = xp.zeros((pad, image.shape[1]), image.dtype)
-    padded = xp.concatenate([unseen, image, unseen])
-    out = []
-    for kr, kc in wins:
-        by_rows = _window_min(padded, kr, 0, xp)[pad:pad + rows]
-        out.append(_window_min(by_rows, kc, 1, xp))
-    return xp.stack(out)
-
-
-def level_for(half_angle, layout: Layout, xp=np):
-    """Index into FOOTPRINTS of the smallest window whose every ray lies within `half_angle` radians of a
-    direction, plus half a pixel (where the direction falls in its pixel); len(FOOTPRINTS) when none
-    (a uniform grid's footprints, `min_pool_levels`)."""
-    s = max(layout.elev_step, layout.col_step)
-    need = half_angle / s + 0.5
-    radii = xp.asarray(FOOTPRINTS, xp.float32)
-    return xp.sum(need[..., None] > radii, axis=-1).astype(xp.int32)
-
-
-def _powers(n: int) -> int:
-    """How many spans 2^p (p = 0, 1, ...) a sparse table over n cells holds: the largest is at most n."""
-    return int(n).bit_length()
-
-
-def footprint_levels(image, layout: Layout, xp=np):
-    """The range image [rows, cols] ready for `footprint_nearest`: a uniform grid's `min_pool_levels`
-    [L, rows, cols]; with a beam table a sparse table [P, Q, rows, cols]: at [p, q, r, c] the nearest
-    return in the 2^p rows (beams) from r and the 2^q columns from c (wrapping). Any window of beams and
-    columns is then four overlapping lookups, so a footprint takes exactly the beams that bracket it
-    (Q: up to the widest column window, `footprint_windows`)."""
-    if not layout.beams:
-        return min_pool_levels(image, layout, xp)
-    widest = 2 * footprint_windows(layout)[-1][1] + 1
-    by_cols = [image]
-    for q in range(1, _powers(min(widest, layout.cols))):
-        by_cols.append(xp.minimum(by_cols[-1], _neighbour(by_cols[-1], 0, 1 << (q - 1), xp)))
-    out = []
-    for t in by_cols:
-        tables = [t]
-        for p in range(1, _powers(layout.rows)):
-            t = xp.minimum(t, _neighbour(t, 1 << (p - 1), 0, xp))
-            tables.append(t)
-        out.append(xp.stack(tables))
-    return xp.stack(out, axis=1)
-
-
-def _floor_log2(n, powers: int, xp):
-    """[N] int32 floor(log2 n) of spans n [N] >= 1 (at most 2^powers - 1)."""
-    return sum((n >= (1 << k)).astype(xp.int32) for k in range(1, powers))
-
-
-def footprint_nearest(levels, layout: Layout, points_s, half_size: float, xp=np):
-    """The nearest return among the rays that pass a sphere of radius half_size around each of points_s
-    [T, 3] (sensor frame): its footprint. Returns (nearest [T] float32 (inf: no return there), ok [T] bool:
-    the footprint lies inside the image and a window covers it, distance [T] float32).
-
-    levels: `footprint_levels` of the scan's image. Columns: the smallest window covering the sphere's
-    angular radius plus half a pixel. Rows, with a beam table: the beams from the last one at or below the
-    sphere to the first one at or above it (the beams that bracket it: with beams several degrees apart a
-    small voxel lies between two of them, and a ray that passes beside it says nothing of it, while the
-    beam below, which meets the ground before it, does), counted in beams whatever their spacing; a
-    footprint whose bracket leaves the image is never ok. A uniform grid: `level_for`'s square window."""
-    el, az, dist = _angles(points_s, xp)
-    half_angle = xp.arcsin(xp.clip(half_size / xp.maximum(dist, 1e-3), 0.0, 1.0))
-    col = xp.floor((az - layout.az0) / layout.col_step).astype(xp.int32) % layout.cols
-    n_lv = len(FOOTPRINTS)
-    if not layout.beams:
-        row, inside = _rows_of(el, layout, xp)
-        lv = level_for(half_angle, layout, xp)
-        return levels[xp.minimum(lv, n_lv - 1), row, col], inside & (lv < n_lv), dist.astype(xp.float32)
-    kc = xp.asarray([k for _, k in footprint_windows(layout)], xp.int32)
-    lv = xp.sum((half_angle / layout.col_step + 0.5)[..., None] > kc, axis=-1).astype(xp.int32)
-    beams = xp.asarray(layout.beams, el.dtype)
-    lo = xp.searchsorted(beams, el - half_angle, side="right").astype(xp.int32) - 1   # last beam at or below
-    hi = xp.searchsorted(beams, el + half_angle, side="left").astype(xp.int32)        # first beam at or above
-    ok = (lv < n_lv) & (lo >= 0) & (hi < layout.rows)
-    lo = xp.clip(lo, 0, layout.rows - 1)
-    hi = xp.clip(hi, lo, layout.rows - 1)
-    p = _floor_log2(hi - lo + 1, _powers(layout.rows), xp)
-    top = hi + 1 - xp.left_shift(xp.ones_like(p), p)
-    # the column window c +- k (at most the whole turn: a sparse table's two lookups cover any span <= cols)
-    half_cols = xp.minimum(kc[xp.minimum(lv, n_lv - 1)], (layout.cols - 1) // 2)
-    q = _floor_log2(2 * half_cols + 1, levels.shape[1], xp)
-    left = (col - half_cols) % layout.cols
-    right = (col + half_cols + 1 - xp.left_shift(xp.ones_like(q), q)) % layout.cols
-    nearest = xp.minimum(xp.minimum(levels[p, q, lo, left], levels[p, q, lo, right]),
-                         xp.minimum(levels[p, q, top, left], levels[p, q, top, right]))
-    return nearest, ok, dist.astype(xp.float32)

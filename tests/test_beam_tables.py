@@ -84,14 +84,14 @@ def _voxels():
 @jax.jit(static_argnums=(3,))
 def _free(coords, pts, valid, lay, x):
     img = ri.min_range_image_jax(pts, valid, lay)
-    levels = ri.footprint_levels(ri.dropouts_block(img, lay, jnp), lay, jnp)
+    levels = evidence.footprint_levels(evidence.dropouts_block(img, lay, jnp), lay, jnp)
     sensor = jnp.stack([x, jnp.float32(0.0), jnp.float32(H)])
     return evidence.seen_free(coords, 0.2, levels, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)
 
 
 @jax.jit(static_argnums=3)
 def _maybe(coords, pts, valid, lay, x):
-    img = ri.dropouts_block(ri.min_range_image_jax(pts, valid, lay), lay, jnp)
+    img = evidence.dropouts_block(ri.min_range_image_jax(pts, valid, lay), lay, jnp)
     sensor = jnp.stack([x, jnp.float32(0.0), jnp.float32(H)])
     return evidence.may_be_free(coords, 0.2, img, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)
 
@@ -142,10 +142,10 @@ def test_a_beam_table_from_the_config_and_the_footprint_span():
     assert lay.rows == 5 and np.allclose(np.degrees(lay.beams), [-25, -16, -11, 0, 5])
     img = np.full((5, 8), np.inf, np.float32)
     img[0, :], img[1, :] = 3.0, 6.0                        # the two bottom beams' returns
-    levels = ri.footprint_levels(img, lay)
+    levels = evidence.footprint_levels(img, lay)
     el = np.radians(np.array([-20.0, -12.0, -24.9, 4.9]))   # between beams 0 and 1; 1 and 2; at the edges
     p = np.stack([np.cos(el), np.zeros(4), np.sin(el)], 1) * 10.0
-    nearest, ok, dist = ri.footprint_nearest(levels, lay, p.astype(np.float32), 0.05)
+    nearest, ok, dist = evidence.footprint_nearest(levels, lay, p.astype(np.float32), 0.05)
     assert nearest[0] == 3.0 and nearest[1] == 6.0 and ok[:2].all()
     assert not ok[2] and not ok[3]
 

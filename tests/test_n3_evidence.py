@@ -1,5 +1,8 @@
 """Free-space evidence that persists (`jaxmap.n3.evidence`): what moved leaves no surface, also after it
 left the training window; what stays (a car that parks, a wall seen only at grazing incidence) is kept."""
+import logging
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,7 +11,7 @@ import pytest
 from analytic_lidar import boxes_scan, pose_at
 from jaxmap import range_image as ri
 from jaxmap.config import load_config
-from jaxmap.n3 import evidence
+from jaxmap.n3 import evidence, window
 from jaxmap.n3.mapper import N3Mapper
 
 SMALL = ["train.iters=10", "train.nv=256", "train.np_per_voxel=8", "preprocess.max_range_m=12.0",
@@ -56,6 +59,7 @@ def test_a_car_that_left_after_its_voxels_left_the_window_leaves_no_surface(with
     m, c = with_evidence
     assert _faces_in(c, LEAVES, 0.45) <= 10, _faces_in(c, LEAVES, 0.45)
     assert sum(t["voxels_void"] > 0 for t in m.timings) > 0
+    assert all(t["voxels_untested"] == 0 for t in m.timings)   # the record counts them; here all are tested
     _, c_off = without_evidence
     assert _faces_in(c_off, LEAVES, 0.45) > 500, _faces_in(c_off, LEAVES, 0.45)
 
@@ -132,13 +136,13 @@ def _free(coords, pts, valid, lay, one_pixel, x):
         row, col, dist, inside = ri.pixels(p_s, lay, jnp)
         half = 0.2 * 3 ** 0.5 / 2
         return inside & (dist > 1.5) & (img[row, col] > dist + half + 0.1) & jnp.isfinite(img[row, col])
-    levels = ri.footprint_levels(img, lay, jnp)
+    levels = evidence.footprint_levels(img, lay, jnp)
     return evidence.seen_free(coords, 0.2, levels, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)
 
 
 def test_dropouts_never_free_the_ground():
     """A LiDAR loses returns at grazing incidence and on dark surfaces. With the empty pixels under a return
-    filled from their column (`range_image.dropouts_block`, the rule) no ground voxel is seen free, both when
+    filled from their column (`evidence.dropouts_block`, the rule) no ground voxel is seen free, both when
     half the ground returns beyond 8 m are lost at random (the air above is still seen free: measured 65 %
     of it, 100 % without dropouts) and when every ground return beyond 10 m is (a dark road). With every
     empty pixel taken as the sky, the rays of the end walls, which went farther, free the dark road's voxels."""
@@ -176,6 +180,120 @@ def test_dropouts_never_free_the_ground():
 @jax.jit(static_argnums=(3, 4))
 def _free_with_dropouts(coords, pts, valid, lay, block, x):
     img = ri.min_range_image_jax(pts, valid, lay)
-    levels = ri.footprint_levels(ri.dropouts_block(img, lay, jnp) if block else img, lay, jnp)
+    levels = evidence.footprint_levels(evidence.dropouts_block(img, lay, jnp) if block else img, lay, jnp)
     sensor = jnp.stack([x, jnp.float32(0.0), jnp.float32(1.7)])
     return evidence.seen_free(coords, 0.2, levels, lay, jnp.eye(3, dtype=jnp.float32), sensor, 0.1, 1.5)
+
+
+def test_min_pool_levels_are_the_nearest_return_within_their_window():
+    """Every footprint level against a brute-force window minimum: columns wrap, rows beyond the image
+    count as unseen (range 0), so a window reaching past the field of view is never free."""
+    rng = np.random.default_rng(1)
+    lay = ri.Layout(rows=12, cols=40, elev0=-0.2, elev_step=0.02, az0=-math.pi)   # rows 0.02, cols 0.157 rad
+    img = rng.uniform(1, 50, (12, 40)).astype(np.float32)
+    img[rng.random(img.shape) < 0.2] = np.inf
+    lv = np.asarray(jax.jit(lambda x: evidence.min_pool_levels(x, lay, jnp))(img))
+    wins = evidence.footprint_windows(lay)
+    assert wins[0] == (8, 1) and len(lv) == len(evidence.FOOTPRINTS)
+    for j, (kr, kc) in enumerate(wins[:5]):
+        ref = np.full_like(img, np.inf)
+        for dr in range(-kr, kr + 1):
+            for dc in range(-kc, kc + 1):
+                sh = np.roll(img, -dc, axis=1)
+                r = np.arange(12) + dr
+                inside = (r >= 0) & (r < 12)
+                sh = np.where(inside[:, None], sh[np.where(inside, r, 0)], 0.0)
+                ref = np.minimum(ref, sh)
+        np.testing.assert_array_equal(lv[j], ref, err_msg=f"level {kr} x {kc}")
+    np.testing.assert_array_equal(evidence.min_pool_levels(img, lay)[3], lv[3])  # numpy and jax agree
+    # the level a half-angle needs: its window covers it plus half a pixel on both axes
+    half = np.array([0.0, 0.1, 0.3, 1.0], np.float32)
+    j = evidence.level_for(half, lay)
+    s = max(lay.elev_step, lay.col_step)
+    for h, jj in zip(half, j):
+        assert evidence.FOOTPRINTS[jj] * s >= h + 0.5 * s and (jj == 0 or evidence.FOOTPRINTS[jj - 1] * s < h + 0.5 * s)
+
+
+def test_candidates_rotate_past_the_cap_until_every_voxel_in_range_is_tested():
+    """More voxels in range (and let through by `may_be_free`) than a frame tests (cap 512 here,
+    TESTED_PER_FRAME in the map): each frame tests `cap` of them, all in range, and counts the rest
+    (`voxels_untested` in the frame's record); frame f starts at row f * cap, so frames 0 .. V / cap - 1
+    test every one of them. Stuck at row 0, the same 512 would be tested every frame."""
+    rng = np.random.default_rng(0)
+    v, n, cap, leaf, radius = 8192, 7000, 512, 0.2, 15.0
+    coord = rng.integers(-60, 60, (v, 3)).astype(np.int32)
+    maybe = rng.random(v) < 0.7
+    sensor = np.array([0.3, -0.2, 0.1], np.float32)
+    d = (coord + 0.5) * leaf - sensor
+    near = (np.sum(d * d, axis=1) <= radius * radius) & (np.arange(v) < n) & maybe
+    assert near.sum() > 4 * cap
+    pick = jax.jit(lambda f: evidence.candidates(jnp.asarray(coord), n, leaf, jnp.asarray(sensor), radius, f,
+                                                 jnp.asarray(maybe), cap=cap))
+    tested = np.zeros(v, bool)
+    for f in range(v // cap):
+        rows, untested = (np.asarray(x) for x in pick(jnp.int32(f)))
+        assert len(np.unique(rows)) == cap and (rows < v).all() and near[rows].all()
+        assert int(untested) == near.sum() - cap
+        tested[rows] = True
+    assert tested[near].all(), f"{(near & ~tested).sum()} of {near.sum()} voxels in range never tested"
+
+
+def _void_store(v: int, p: int = 4):
+    """A pair store of v voxel rows, each with a block (slots in a shuffled order) of p pairs labelled
+    -0.2 .. 0.3 m, all surface samples."""
+    rng = np.random.default_rng(1)
+    store = window.create(v, p, v)
+    slot = rng.permutation(v).astype(np.int32)
+    pairs = rng.uniform(-1, 1, (v, p, 4)).astype(np.float32)
+    pairs[..., 3] = rng.uniform(-0.2, 0.3, (v, p))
+    return store.replace(pairs=jnp.asarray(pairs), surface=jnp.ones((v, p), bool), count=jnp.full((v,), p, jnp.int32),
+                         slot_of_voxel=jnp.asarray(slot), voxel_of_slot=jnp.asarray(np.argsort(slot).astype(np.int32)))
+
+
+def test_void_voxels_past_the_raise_cap_are_raised_on_the_next_frames():
+    """More voxels turn void in a frame than RAISE_PER_FRAME (4,096): the first frame raises 4,096 of them,
+    the next the rest, then none; every void voxel's pairs end at least `floor` (and out of the eikonal
+    term where they were below it), the other voxels' pairs untouched, and a pass that did not go in
+    (apply False) raises nothing."""
+    cap, floor = evidence.RAISE_PER_FRAME, 0.1
+    v = cap + 2000
+    store0 = _void_store(v)
+    is_void = np.random.default_rng(2).random(v) < 0.9                      # ~5,000 void voxels
+    ev = evidence.create(v).replace(free_run=jnp.asarray(np.where(is_void, 3, 0), jnp.int32))
+    step = jax.jit(lambda e, s, a: evidence.raise_void_pairs(e, s, 2, floor, a))
+    _, same, none = step(ev, store0, jnp.bool_(False))
+    assert int(none) == 0 and np.array_equal(np.asarray(same.pairs), np.asarray(store0.pairs))
+    counts, store = [], store0
+    for _ in range(3):
+        ev, store, n = step(ev, store, jnp.bool_(True))
+        counts.append(int(n))
+    assert counts == [cap, int(is_void.sum()) - cap, 0], counts
+    assert np.array_equal(np.asarray(ev.raised), is_void)
+    slot = np.asarray(store0.slot_of_voxel)
+    lab0, lab = np.asarray(store0.pairs)[slot, :, 3], np.asarray(store.pairs)[slot, :, 3]
+    assert (lab[is_void] >= floor).all()
+    np.testing.assert_array_equal(lab[is_void], np.maximum(lab0[is_void], floor))
+    np.testing.assert_array_equal(np.asarray(store.surface)[slot][is_void], lab0[is_void] >= floor)
+    np.testing.assert_array_equal(lab[~is_void], lab0[~is_void])
+
+
+def test_evidence_without_a_range_image_layout_is_said_where_the_frame_program_is_built(caplog):
+    """evidence.enabled with no range-image layout (preprocess.image_rows 0, no scan read yet): the static
+    settings are built without a word (the layout may be read off the first scan a moment later), and the
+    frame program built from them says that it maps without evidence, and how to set the layout."""
+    from jaxmap.config import MapConfig
+    from jaxmap.n3 import core, scan
+
+    cfg = MapConfig()
+    assert cfg.evidence.enabled and cfg.preprocess.image_rows == 0
+    evidence.warn_without_layout.cache_clear()
+    with caplog.at_level(logging.WARNING):
+        static = core.N3Static.from_config(cfg)
+    assert static.evidence_requested and not static.evidence and not caplog.records
+    state = jax.eval_shape(lambda: core.init_state(static, cfg, core.capacities_for(static, cfg)))
+    pts, nrm, pose = scan.preprocess(boxes_scan((0, 0, 1.7)), pose_at(0.0), cfg.preprocess, 0)[:3]
+    batch = scan.to_batch(pts, nrm, pose, pose[:3, 3], scan.bucket_for(len(pts)))
+    with caplog.at_level(logging.WARNING):
+        jax.eval_shape(lambda s, b: core.integrate(static, s, b, jax.random.PRNGKey(0)), state, batch)
+    said = [r.getMessage() for r in caplog.records if r.name == "jaxmap.n3.evidence"]
+    assert len(said) == 1 and "without free-space evidence" in said[0] and "preprocess.image_rows" in said[0], said

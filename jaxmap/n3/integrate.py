@@ -1,7 +1,8 @@
 """Putting one scan into the N3 map: sample the frame's training pairs, allocate leaf voxels and their
 corner feature rows (fixed-capacity hash tables), store the pairs in their voxels' blocks, slide the
 window and let the frame's free space carve the pairs it contradicts (`window.carve`: what moved
-away is erased). Pure functions, traced inside the frame program (`jaxmap.n3.frame.step`).
+away is erased), then count the frame's free-space evidence (`jaxmap.n3.evidence.update`). Pure functions,
+traced inside the frame program (`jaxmap.n3.frame.step`).
 
 Capacities are fixed inside jit. Nothing is dropped when one runs out: `integrate` is all or
 nothing for the pair store, hash inserts revert themselves on overflow, corner allocation is a
@@ -17,7 +18,6 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmap import range_image
 from jaxmap.grid import features as gfeat
 from jaxmap.grid import hashing
 from jaxmap.grid.compaction import nonzero_from
@@ -55,6 +55,8 @@ class FrameStats(NamedTuple):
     voxels_void: jax.Array      # [] int32 void voxels after the frame
     voxels_raised: jax.Array    # [] int32 voxels whose stored pairs were raised this frame (they turned void)
     rays_left: jax.Array        # [] int32 usable ray samples beyond `carve_samples` (not used this frame)
+    voxels_untested: jax.Array  # [] int32 voxels the evidence did not test this frame though in range (beyond
+                                # its TESTED_PER_FRAME: a different part of them each frame, `evidence.candidates`)
     kept: jax.Array             # [N] bool the scan points that got training samples
 
 
@@ -88,37 +90,6 @@ def drop_void_points(static: N3Static, state: N3State, scan: ScanBatch):
     is_void = n3evidence.void(state.evidence, static.void_frames)
     drop = (rows >= 0) & is_void[jnp.maximum(rows, 0)]
     return scan._replace(valid=scan.valid & ~drop), rows, jnp.sum(drop, dtype=jnp.int32)
-
-
-@functools.partial(jax.named_call, name="evidence")
-def update_evidence(static: N3Static, ev, store, scan: ScanBatch, point_rows, voxel_coord, n_voxels, frame, ok):
-    """This frame's free-space evidence (`jaxmap.n3.evidence`): the voxels its range image saw free count
-    one more frame, the voxels its points hit (point_rows [N], those dropped as void too) start again;
-    the pairs of voxels that turned void are raised. Nothing changes when ok [] is False (the pass is
-    retried). Returns (evidence, store, [] int32 voxels seen free, [] int32 voxels raised)."""
-    v = ev.free_run.shape[0]
-    hit = jnp.zeros((v,), bool).at[jnp.where(point_rows >= 0, point_rows, v)].set(True, mode="drop")
-    with jax.named_scope("image"):
-        blocked = range_image.dropouts_block(scan.image, static.image, jnp)
-        levels = range_image.footprint_levels(blocked, static.image, jnp)
-    offset = (frame * n3evidence.TESTED_PER_FRAME) % v
-    with jax.named_scope("candidates"):
-        maybe = n3evidence.may_be_free(voxel_coord, static.leaf, blocked, static.image, scan.rotation, scan.sensor,
-                                       static.evidence_margin, static.free_min_range)
-        rows, _ = n3evidence.candidates(voxel_coord, n_voxels, static.leaf, scan.sensor, static.evidence_range, offset,
-                                        maybe)
-    with jax.named_scope("test"):
-        coords = voxel_coord[jnp.minimum(rows, v - 1)]
-        free = (rows < v) & n3evidence.seen_free(coords, static.leaf, levels, static.image, scan.rotation, scan.sensor,
-                                                 static.evidence_margin, static.free_min_range)
-    with jax.named_scope("observe"):
-        ev = n3evidence.observe(ev, rows, free, hit, ok)
-    n_raised = jnp.zeros((), jnp.int32)
-    if static.raise_pairs and not static.uses_pool:
-        with jax.named_scope("raise"):
-            ev, store, n_raised = n3evidence.raise_void_pairs(ev, store, static.void_frames, static.evidence_margin,
-                                                              ok)
-    return ev, store, jnp.sum(free & ~hit[jnp.minimum(rows, v - 1)], dtype=jnp.int32), n_raised
 
 
 @functools.partial(jax.named_call, name="allocate")
@@ -300,6 +271,8 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     point_rows = n_void = None
     if static.evidence:
         scan, point_rows, n_void = drop_void_points(static, state, scan)
+    elif static.evidence_requested:
+        n3evidence.warn_without_layout(static)
     samples = jax.named_call(sample_frame, name="sample")(key, scan.points, scan.normals, scan.valid, scan.sensor, label_mode=static.label_mode,
                            trunc=static.trunc, sigma=static.sigma, n_surface=ns, n_free=static.n_free,
                            free_band=static.free_band, free_label=static.free_label,
@@ -319,10 +292,10 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
     store, new_pool, ok, needed, free_blocks, pairs, carved = store_pairs(
         static, state, frame, samples, allowed, center, key, free)
     zero = jnp.zeros((), jnp.int32)
-    ev, n_free, n_raised = state.evidence, zero, zero
+    ev, counts = state.evidence, n3evidence.Counts(zero, zero, zero)
     if static.evidence:
-        ev, store, n_free, n_raised = update_evidence(static, state.evidence, store, scan, point_rows, voxel_coord,
-                                                      voxels.count, state.frame, ok)
+        ev, store, counts = n3evidence.update(static, state.evidence, store, scan, point_rows, voxel_coord,
+                                              voxels.count, state.frame, ok)
     state = state.replace(voxels=voxels, corners=corners, voxel_coord=voxel_coord,
                           voxel_corner_rows=voxel_corner_rows, voxels_with_corners=done, store=store, pool=new_pool,
                           evidence=ev)
@@ -334,7 +307,8 @@ def integrate(static: N3Static, state: N3State, scan: ScanBatch, key, fits=True)
         new_feature_rows=n_new_c, blocks_needed=needed, blocks_free=free_blocks, window_blocks=store.window_n,
         store_pairs=pairs, free_dropped=jnp.sum(valid[:, ns:] & (free_rows < 0), dtype=jnp.int32),
         carved=carved, points_filtered=n_filtered, scan_points=jnp.sum(scan.valid, dtype=jnp.int32),
-        scan_overflow=~fits, points_void=zero if n_void is None else n_void, voxels_free=n_free,
-        voxels_void=n_void_voxels, voxels_raised=n_raised, rays_left=frame.rays_left, kept=scan.valid,
+        scan_overflow=~fits, points_void=zero if n_void is None else n_void, voxels_free=counts.free,
+        voxels_void=n_void_voxels, voxels_raised=counts.raised, rays_left=frame.rays_left,
+        voxels_untested=counts.untested, kept=scan.valid,
     )
     return state, stats

@@ -249,6 +249,7 @@ class N3Mapper:
                     "points_filtered": int(fs.points_filtered), "points_void": int(fs.points_void),
                     "voxels_free": int(fs.voxels_free), "voxels_void": int(fs.voxels_void),
                     "voxels_raised": int(fs.voxels_raised), "rays_left": int(fs.rays_left),
+                    "voxels_untested": int(fs.voxels_untested),
                     "feature_capacity": int(st.feature_table.shape[0]),
                     "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
             self.timings.append(info)

@@ -72,7 +72,9 @@ class N3Static:
     min_leaf_corners: int
     preprocess: object = None   # the PreprocessConfig when scans are preprocessed inside the frame program
     #                             (preprocess.device true, or auto on a GPU: `preprocess_device.resolve`)
-    evidence: bool = False      # free-space evidence per voxel (`jaxmap.n3.evidence`)
+    evidence: bool = False      # free-space evidence per voxel (`jaxmap.n3.evidence`): evidence.enabled and
+    #                             the scans' range-image layout known (`image`)
+    evidence_requested: bool = False  # evidence.enabled (without a layout the frame program warns it runs without)
     evidence_margin: float = 0.1
     void_frames: int = 2
     raise_pairs: bool = True
@@ -103,7 +105,8 @@ class N3Static:
             radius_vox=int(math.ceil(cfg.preprocess.max_range_m / leaf)), max_load=g.max_load,
             mask_level=m.mask_level, min_leaf_corners=m.min_leaf_corners,
             preprocess=on_device,
-            evidence=cfg.evidence.enabled and cfg.preprocess.image_rows > 0, evidence_margin=cfg.evidence.margin_m,
+            evidence=cfg.evidence.enabled and cfg.preprocess.image_rows > 0, evidence_requested=cfg.evidence.enabled,
+            evidence_margin=cfg.evidence.margin_m,
             void_frames=cfg.evidence.void_frames, raise_pairs=cfg.evidence.raise_pairs,
             evidence_range=cfg.evidence.max_range_m,
             image=layout_of(cfg.preprocess) if cfg.evidence.enabled or on_device is not None else None,

@@ -301,6 +301,22 @@ def block_of(store: PairStore, voxel_rows):
     return jnp.where(voxel_rows >= 0, store.slot_of_voxel[jnp.clip(voxel_rows, 0, v - 1)], -1)
 
 
+def raise_labels(store: PairStore, voxel_rows, floor: float) -> PairStore:
+    """The store with the labels of the pairs held for voxel_rows [C] int32 (outside [0, V): none) raised to
+    at least `floor`; a pair raised leaves the eikonal term (`surface` cleared: it is no surface sample any
+    more). The free-space evidence's rule for voxels that turned void (`jaxmap.n3.evidence.raise_void_pairs`)."""
+    v, s = store.slot_of_voxel.shape[0], store.n_slots
+    slot = block_of(store, jnp.where(voxel_rows < v, voxel_rows, -1))
+    tgt = jnp.where(slot >= 0, slot, s)
+    pairs = store.pairs[jnp.minimum(tgt, s - 1)]                                 # [C, P, 4]
+    lab = pairs[..., 3]
+    low = lab < floor
+    pairs = pairs.at[..., 3].set(jnp.maximum(lab, floor))
+    surf = store.surface[jnp.minimum(tgt, s - 1)] & ~low
+    return store.replace(pairs=store.pairs.at[tgt].set(pairs, mode="drop"),
+                         surface=store.surface.at[tgt].set(surf, mode="drop"))
+
+
 def window_slots(in_window):
     """Compact list of window slots. in_window: [S] bool -> (ids [S] int32, n [] int32): `ids[:n]`."""
     return nonzero_fixed(in_window, in_window.shape[0], 0), in_window.sum().astype(jnp.int32)
