@@ -40,7 +40,7 @@ class N3Record(TypedDict, total=False):
     Sizes: points (prepared), bucket (padded rows), window_voxels, store_pairs, store_bytes, leaf_voxels,
     feature_rows, feature_bytes, feature_capacity. The frame's training: loss, bce, eikonal, passes (frame
     programs run for it: 1 unless a table grew). Free space: free_dropped, carved, points_filtered,
-    points_void, voxels_free, voxels_void, voxels_raised, rays_left. Memory: rss_mb, peak_rss_mb. A map of
+    points_void, voxels_free, voxels_void, voxels_raised, rays_left, voxels_untested. Memory: rss_mb, peak_rss_mb. A map of
     submaps adds submap, submap_frame, submaps, submaps_resident, submaps_on_disk, device_mb; the frame
     loop adds checkpoint_s."""
 
@@ -72,6 +72,7 @@ class N3Record(TypedDict, total=False):
     voxels_void: int
     voxels_raised: int
     rays_left: int
+    voxels_untested: int
     feature_capacity: int
     rss_mb: float
     peak_rss_mb: float
