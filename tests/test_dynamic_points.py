@@ -2,6 +2,7 @@
 points removed / dynamic points, of the points a run trained on, on a hand-made frame and through a whole
 `jaxmap map` run (metrics.json, `jaxmap eval`, the suite table)."""
 import json
+import types
 
 import numpy as np
 import pytest
@@ -78,7 +79,7 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
     from jaxmap.config import load_config
     from jaxmap.io import open_sequence
     from jaxmap.metrics import format_metrics
-    from jaxmap.runs.n3 import prepare_frame
+    from jaxmap.n3.scan import MapStart
 
     real_submit, real_finish = mapper_mod.N3Mapper.submit, mapper_mod.N3Mapper.finish
 
@@ -100,7 +101,9 @@ def test_a_run_counts_the_points_it_trained_on(small_parking_city, tmp_path, mon
     objects = load_moving_objects(small_parking_city)
     counts = np.zeros(4, int)
     for i in range(len(seq)):
-        fr = prepare_frame(cfg.preprocess, seq, i)
+        raw = seq.frame(i)
+        ready, pose = MapStart.of(cfg).prepare(raw.points, raw.pose, i)
+        fr = types.SimpleNamespace(points=ready.points, pose=pose, index=raw.index)
         w = fr.points.astype(np.float64) @ fr.pose[:3, :3].T + fr.pose[:3, 3]
         dyn = np.zeros(len(w), bool)
         for x, y, z, yaw, ln, wd, h in objects.boxes_at(fr.index).params:

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import PoseError, random_rotation, se3_inverse
-from jaxmap.io import (Frame, open_sequence, read_calib, read_depth_png, read_intrinsics, read_mesh_ply,
+from jaxmap.io import (SensorFrame, open_sequence, read_calib, read_depth_png, read_intrinsics, read_mesh_ply,
                        read_points_ply, read_poses, read_scan, write_calib, write_depth_png, write_intrinsics,
                        write_mesh_ply, write_points_ply, write_poses, write_scan_bin)
 
@@ -66,7 +66,7 @@ def test_kitti_roundtrip_points_bitwise_and_lidar_poses(tmp_path):
     expected = np.linalg.inv(Tr) @ poses_cam @ Tr  # SHINE / N3 convention
     np.testing.assert_allclose(seq.poses, expected, rtol=0, atol=1e-12)
     for i, frame in enumerate(seq):
-        assert isinstance(frame, Frame) and frame.index == i
+        assert isinstance(frame, SensorFrame) and frame.index == i
         assert frame.points.dtype == np.float32 and frame.points.shape == (len(scans[i]), 3)
         assert frame.points.tobytes() == np.ascontiguousarray(scans[i][:, :3]).tobytes()
         assert frame.pose.dtype == np.float64 and frame.pose.shape == (4, 4)

@@ -1,6 +1,6 @@
 """Sequence and point-cloud I/O.
 
-`open_sequence(path)` reads any of these layouts into a `Sequence` of `Frame`s (kind in parentheses):
+`open_sequence(path)` reads any of these layouts into a `Sequence` of `SensorFrame`s (kind in parentheses):
 
 * KITTI odometry (LiDAR) ("kitti"): velodyne/*.bin|*.ply|*.pcd + poses.txt (camera-frame poses) + calib.txt
   (Tr); frame poses are LiDAR poses `inv(Tr) @ pose @ Tr` (SHINE-Mapping / N3-Mapping convention).
@@ -14,7 +14,7 @@
 * LAS/LAZ ("las"): one .las/.laz file (one frame, identity pose) or a directory of them + poses.txt
   (`jaxmap.io.las`).
 
-Every `Frame` holds sensor-frame points [N,3] float32, the pose [4,4] float64 T_world_sensor
+Every `SensorFrame` holds sensor-frame points [N,3] float32, the pose [4,4] float64 T_world_sensor
 (p_w = R p_s + t) and, for ROS bags and TUM RGB-D, the sensor timestamp in seconds (else None).
 Bad input raises `jaxmap.errors.DataError` (or `PoseError`) naming the file.
 """
@@ -27,7 +27,7 @@ from jaxmap.config import DATA_KINDS
 from jaxmap.errors import DataError
 from jaxmap.io.depth import (DepthSequence, backproject_depth, pixel_rays, read_depth_png, read_intrinsics,
                              write_depth_png, write_intrinsics)
-from jaxmap.io.kitti import (Frame, KittiSequence, Sequence, camera_poses_from_lidar, lidar_poses_from_camera,
+from jaxmap.io.kitti import (SensorFrame, KittiSequence, Sequence, camera_poses_from_lidar, lidar_poses_from_camera,
                              read_calib, read_poses, select_frames, write_calib, write_poses)
 from jaxmap.io.las import LasSequence, is_las_file, list_las, read_las
 from jaxmap.io.pointcloud import (read_mesh_ply, read_pcd, read_points_ply, read_scan, write_mesh_ply,
@@ -114,7 +114,7 @@ def open_sequence(data_dir, kind: str = "auto", begin_frame: int = 0, end_frame:
 
 
 __all__ = [
-    "Frame", "Sequence", "KittiSequence", "DepthSequence", "RosbagSequence", "TumSequence", "ReplicaSequence",
+    "SensorFrame", "Sequence", "KittiSequence", "DepthSequence", "RosbagSequence", "TumSequence", "ReplicaSequence",
     "LasSequence", "KINDS", "open_sequence", "detect_kind", "describe", "select_frames", "read_las",
     "read_tum_trajectory",
     "read_scan", "write_scan_bin", "read_pcd", "read_points_ply", "write_points_ply", "read_mesh_ply",

@@ -1,4 +1,4 @@
-"""KITTI odometry layout (as read by SHINE-Mapping / N3-Mapping) and the `Frame`/`Sequence` types.
+"""KITTI odometry layout (as read by SHINE-Mapping / N3-Mapping) and the `SensorFrame`/`Sequence` types.
 
 Layout of a sequence directory::
 
@@ -29,7 +29,7 @@ _identity_logged: set[str] = set()
 
 
 @dataclass(frozen=True, eq=False)
-class Frame:
+class SensorFrame:
     """One frame of a sequence.
 
     index:  frame number in the sequence (position among all scans/images, before selection; for ROS bags
@@ -84,11 +84,11 @@ class Sequence:
     def __len__(self) -> int:
         return len(self.indices)
 
-    def __iter__(self) -> Iterator[Frame]:
+    def __iter__(self) -> Iterator[SensorFrame]:
         for i in range(len(self)):
             yield self.frame(i)
 
-    def frame(self, i: int) -> Frame:
+    def frame(self, i: int) -> SensorFrame:
         """The i-th selected frame (negative i counts from the end)."""
         n = len(self)
         if not -n <= i < n:
@@ -100,9 +100,9 @@ class Sequence:
         if not points.any():  # no points, or all exactly at the origin: nothing to map
             what = "no points" if len(points) == 0 else f"all {len(points)} points at the sensor origin (0, 0, 0)"
             log.warning("%s: empty scan (%s): frame %d adds nothing to the map", self.source(idx), what, idx)
-        return Frame(index=idx, points=points, pose=np.array(self.poses[i]), timestamp=stamp)
+        return SensorFrame(index=idx, points=points, pose=np.array(self.poses[i]), timestamp=stamp)
 
-    def __getitem__(self, i: int) -> Frame:
+    def __getitem__(self, i: int) -> SensorFrame:
         """`seq[i]` = `seq.frame(i)`: the i-th selected frame (an int; negative counts from the end)."""
         if not isinstance(i, (int, np.integer)) or isinstance(i, bool):
             raise TypeError(f"sequence indices are ints (the i-th selected frame), not {type(i).__name__}")

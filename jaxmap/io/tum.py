@@ -11,8 +11,8 @@ Layout of a sequence directory (as downloaded, e.g. rgbd_dataset_freiburg1_xyz/)
 
 Each depth image is matched to the ground-truth pose NEAREST in time, if within `time_tolerance`
 (default 0.02 s, as TUM's associate.py); depth images without one are skipped and counted in a warning,
-and a sequence where none matches is an error. Frame numbers (`Frame.index`, begin/end/every_frame)
-count the matched depth images; `Frame.timestamp` is the depth image's timestamp. Points are
+and a sequence where none matches is an error. Frame numbers (`SensorFrame.index`, begin/end/every_frame)
+count the matched depth images; `SensorFrame.timestamp` is the depth image's timestamp. Points are
 back-projected with `jaxmap.io.depth.backproject_depth` (the images are taken as undistorted, as the
 TUM tools do).
 """

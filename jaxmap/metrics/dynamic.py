@@ -20,9 +20,9 @@ GROUND_CLEARANCE_M (0.1 m) over its base, so the road or sidewalk under and arou
 stays static (it is in the static map; counting it dynamic would make a mapper that keeps the ground
 look like one that keeps the car). The few returns on an object's lowest 0.1 m count static.
 
-The labels of a frame cost one `jaxmap.moving.inside_boxes` over its points (vectorised, numpy): the N3
-run computes them where it prepares the frame (the prefetch thread), and counts them against "kept"
-once the frame is mapped (four sums).
+The labels of a frame cost one `jaxmap.moving.inside_boxes` over its points (vectorised, numpy): an N3
+run's `RunScores` computes them where it prepares the frame (the prefetch thread), and counts them
+against "kept" once the frame is mapped (four sums).
 """
 from __future__ import annotations
 
@@ -200,3 +200,36 @@ def format_scores(s: dict) -> str:
     if s.get("sense") == "map" and t:
         line += f"; trained on: SA {t['sa_percent']:.2f} %, DA {t['da_percent']:.2f} %"
     return line
+
+
+class RunScores:
+    """The point scores of one mapping run of a sequence with moving objects, kept beside the mapping: its
+    frames labelled where they are prepared (`label`, in the prefetch thread), each finished frame counted
+    against the points the map trained on (`counter`, the frame loop's on_finished), the map sense once
+    the map is final (`result`: metrics.json's "dynamic_points")."""
+
+    def __init__(self, labeller: Labeller):
+        self.labeller, self.scores = labeller, PointScores()
+
+    @classmethod
+    def of_sequence(cls, data_dir) -> "RunScores | None":
+        """The scores of a run of the sequence in `data_dir`; None when it has no moving objects."""
+        labeller = labeller_for(data_dir)
+        return cls(labeller) if labeller is not None else None
+
+    def label(self, points_s, pose, index: int) -> np.ndarray:
+        """[M] bool: the frame's points (sensor frame, at pose [4, 4]) inside its moving-object boxes."""
+        return self.labeller(points_s, pose, index)
+
+    def counter(self, voxel_coords):
+        """fn(frame, record, kept) counting a finished frame (its `dynamic` labels, kept [M] bool or None)
+        at its points' map voxels `voxel_coords(points_s, pose)` ([M, 3] int, one lattice for the run)."""
+        def add(frame, record, kept) -> None:
+            if frame.dynamic is not None:
+                self.scores.add(frame.dynamic, kept, voxel_keys(voxel_coords(frame.points, frame.pose)))
+
+        return add
+
+    def result(self, void_voxels: np.ndarray) -> dict:
+        """`PointScores.result` with the final map's void voxels [K, 3] (the same lattice)."""
+        return self.scores.result(voxel_keys(void_voxels))

@@ -124,9 +124,10 @@ class N3Static:
 
 def _on_device(p):
     """The PreprocessConfig of a frame program that preprocesses its scans itself, else None (the host does)."""
-    from jaxmap.preprocess_device import resolve
+    if p.device == "auto" or (p.device == "true" and p.normals == "knn"):  # not decided yet (`MapStart` decides)
+        from jaxmap.preprocess_device import resolve
 
-    p = resolve(p)
+        p = resolve(p)
     return p if p.device == "true" else None
 
 

@@ -216,6 +216,14 @@ class SubmapMapper(N3Mapper):
             save_state(path, self.cfg, self.state, self.timings, extra=extra)
 
 
+def new_map(start, directory: str | None = None, **kw) -> N3Mapper:
+    """The empty map of a `scan.MapStart`: one grid (N3Mapper), or with submaps.enabled a SubmapMapper writing
+    its submaps to `directory` (a run's `submaps/`; None: a new temporary folder). kw: first_batch."""
+    if start.cfg.submaps.enabled:
+        return SubmapMapper(start=start, directory=directory, **kw)
+    return N3Mapper(start=start, **kw)
+
+
 def load_map(path: str) -> N3Mapper:
     """The map of checkpoint directory `path` (or one checkpoint `path/<step>`): an N3Mapper, or a
     SubmapMapper where the checkpoint holds a map of submaps (its submaps read from the run's submaps/)."""

@@ -26,7 +26,7 @@ from jaxmap import compile_cache
 from jaxmap.config import MapConfig, save_config, shipped_config_path, to_dict
 from jaxmap.errors import CheckpointError, NoCheckpointError
 from jaxmap.finish import finish_run
-from jaxmap.frame_loop import (Checkpoints, Frame, Prefetcher, Progress, SubmitSteps, open_run_sequence, open_viewer,
+from jaxmap.frame_loop import (Checkpoints, Prefetcher, Progress, SubmitSteps, open_run_sequence, open_viewer,
                                prepared_frame, run_frames)
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import dynamic
@@ -34,7 +34,7 @@ from jaxmap.n3 import checkpoint
 from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart
-from jaxmap.n3.submap_mapper import SubmapMapper, load_map
+from jaxmap.n3.submap_mapper import load_map, new_map
 
 log = logging.getLogger("jaxmap")
 
@@ -55,22 +55,24 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     os.makedirs(out_dir, exist_ok=True)
     ckpt, t_start, n_compiles = os.path.join(out_dir, "checkpoint"), time.perf_counter(), len(COMPILE_SECONDS)
     seq = open_run_sequence(cfg)
-    labeller = dynamic.labeller_for(cfg.data.path)
-    scores = dynamic.PointScores() if labeller is not None else None
+    scores = dynamic.RunScores.of_sequence(cfg.data.path)  # None: no moving objects to score
+    labeller = scores.label if scores is not None else None
     if resume:
         mapper = resume_mapper(out_dir, cfg, seq)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
         uploader = mapper.uploader()
-        frames = Prefetcher(seq, mapper.frames, len(seq), _loader(mapper.start, labeller), then=uploader)
+        frames = Prefetcher(seq, mapper.frames, len(seq), functools.partial(prepared_frame, mapper.start.prepare, label=labeller),
+                            then=uploader)
     else:
         # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
         # is the first pose's, and the first prepared frame gives the program its shapes.
         start = first_start(cfg, seq)
         uploader = start.uploader()
-        frames = Prefetcher(seq, 0, len(seq), _loader(start, labeller), then=uploader)
+        frames = Prefetcher(seq, 0, len(seq), functools.partial(prepared_frame, start.prepare, label=labeller),
+                            then=uploader)
         try:
             first = frames.first()
-            mapper = new_mapper(start, out_dir, first_batch=first.batch if first is not None else None)
+            mapper = new_map(start, os.path.join(out_dir, "submaps"), first_batch=first.batch if first is not None else None)
         except BaseException:
             frames.close()
             raise
@@ -84,13 +86,13 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                         final=lambda: mapper.save(ckpt, background=True, copy=False))
     bar = Progress("mapping", progress, first=f"compiling{_compile_estimate()}",
                    postfix=lambda r: {"loss": f"{r['loss']:.4f}", "t": f"{r['total_s']:.2f}s", "store": r["store_pairs"]})
-    steps = SubmitSteps(mapper, on_finished=_scorer(mapper, scores))
+    steps = SubmitSteps(mapper, on_finished=scores.counter(mapper.voxel_coords) if scores is not None else None)
     loop = run_frames(frames, steps, total=len(seq), start=mapper.frames, progress=bar,
                       viewer=viewer, checkpoints=saves, t_start=t_start)
     extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
-                      point_scores=scores.result(dynamic.voxel_keys(mapper.void_voxels())) if scores is not None else None,
+                      point_scores=scores.result(mapper.void_voxels()) if scores is not None else None,
                       wait_saves=checkpoint.wait_for_saves)
 
 
@@ -102,40 +104,15 @@ def first_start(cfg: MapConfig, seq, poses=None) -> MapStart:
     return MapStart.of(cfg, first.points, first.pose if poses is None else poses[0])
 
 
-def new_mapper(start: MapStart, run_dir: str, **kw) -> N3Mapper:
-    """The empty map of a run started at `start` in `run_dir`: one grid (N3Mapper), or with submaps.enabled a
-    SubmapMapper writing its submaps to run_dir/submaps. kw: N3Mapper's (first_batch)."""
-    if start.cfg.submaps.enabled:
-        return SubmapMapper(start=start, directory=os.path.join(run_dir, "submaps"), **kw)
-    return N3Mapper(start=start, **kw)
-
-
-def _loader(start: MapStart, label=None, poses=None):
-    """The `Prefetcher` loader of a map started at `start` (`frame_loop.prepared_frame` with its `prepare`)."""
-    return functools.partial(prepared_frame, start.prepare, label=label, poses=poses)
-
-
-def _scorer(mapper: N3Mapper, scores: dynamic.PointScores | None):
-    """`SubmitSteps`' on_finished that counts each frame's labelled points against those the map trained on
-    (None without moving objects)."""
-    if scores is None:
-        return None
-
-    def add(frame: Frame, record: dict, kept) -> None:
-        if frame.dynamic is not None:
-            scores.add(frame.dynamic, kept, dynamic.voxel_keys(mapper.voxel_coords(frame.points, frame.pose)))
-
-    return add
-
-
 def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
     """A new N3 map of every frame of `seq` at `poses` [N, 4, 4] (instead of the sequence's), the frames
     read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
     (no checkpoints); a map of submaps with `submaps.enabled`. Returns (N3Mapper, frame_loop.FramesRun)."""
-    mapper = new_mapper(first_start(cfg, seq, poses), cfg.output)  # (with submaps.enabled, in cfg.output's submaps/)
+    mapper = new_map(first_start(cfg, seq, poses), os.path.join(cfg.output, "submaps"))  # (with submaps.enabled)
     uploader = mapper.uploader()
     mapper.follow(uploader)
-    frames = Prefetcher(seq, 0, len(seq), _loader(mapper.start, poses=poses), then=uploader)
+    frames = Prefetcher(seq, 0, len(seq), functools.partial(prepared_frame, mapper.start.prepare, poses=poses),
+                        then=uploader)
     return mapper, run_frames(frames, SubmitSteps(mapper), total=len(seq), progress=Progress(desc, progress))
 
 
@@ -155,7 +132,7 @@ def no_usable_checkpoint(run_dir: str, e: CheckpointError) -> CheckpointError:
     return CheckpointError(f"no usable checkpoint in {run_dir} ({faults}); start again with --overwrite")
 
 
-def resume_mapper(run_dir: str, cfg: MapConfig, seq):
+def resume_mapper(run_dir: str, cfg: MapConfig, seq) -> N3Mapper:
     """The N3Mapper of the newest intact checkpoint of run directory `run_dir` (falling back to the
     previous one with a warning), or a new one at frame 0 of `seq` (with a warning) when the run never
     saved one. CheckpointError when every checkpoint is damaged, or when the checkpoint's config is not
@@ -165,7 +142,7 @@ def resume_mapper(run_dir: str, cfg: MapConfig, seq):
     except NoCheckpointError:
         log.warning("%s: no checkpoint yet (the run stopped before its first one, saved every %d frames): "
                     "mapping again from frame 0", run_dir, cfg.checkpoint_every)
-        return new_mapper(first_start(cfg, seq), run_dir)
+        return new_map(first_start(cfg, seq), os.path.join(run_dir, "submaps"))
     except CheckpointError as e:
         raise no_usable_checkpoint(run_dir, e) from None
     a, b = to_dict(mapper.cfg), to_dict(cfg)

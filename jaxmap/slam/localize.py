@@ -84,7 +84,7 @@ def open_map(path: str):
         raise DataError(f"{path}: the map cannot be read ({e})") from None
 
 
-def prepare_scan(cfg_preprocess, voxel_m: float, seq, i: int) -> Frame:
+def tracking_frame(cfg_preprocess, voxel_m: float, seq, i: int) -> Frame:
     """`Prefetcher` loader: frame i cropped as the map's config crops, downsampled to voxel_m."""
     fr = seq.frame(i)
     p = cfg_preprocess
@@ -175,7 +175,7 @@ def localize_sequence(map_path: str, data: str, out_dir: str, init: np.ndarray |
     step = LocalizeStep(mapper, init, opts, seq, map_path)
     bar = Progress("localize", progress, first="compiling",
                    postfix=lambda r: {"ok": r["ok"], "valid": f"{r['valid']:.2f}", "rms": f"{r['rms_cm']:.1f}cm"})
-    loop = run_frames(Prefetcher(seq, 0, len(seq), functools.partial(prepare_scan, mapper.cfg.preprocess, voxel_m)),
+    loop = run_frames(Prefetcher(seq, 0, len(seq), functools.partial(tracking_frame, mapper.cfg.preprocess, voxel_m)),
                       step, total=len(seq), progress=bar)
     return write_outputs(out_dir, seq, step, has_gt, loop.wall_s)
 

@@ -21,7 +21,7 @@ from jaxmap.geometry import compose, pose_change
 from jaxmap.slam.kiss import KissOdometry
 # The config, prepared scan, step result and open3d helpers live in odometry_common, the registrations
 # (ICP, coarse-to-fine, FPFH + RANSAC) in registration (KISS-ICP shares them); they are imported from here too.
-from jaxmap.slam.odometry_common import (OdometryConfig, OdomStep, Scan, prepare_scan, quiet_open3d,  # noqa: F401
+from jaxmap.slam.odometry_common import (OdometryConfig, OdomStep, Scan, odometry_points, quiet_open3d,  # noqa: F401
                                         to_o3d)
 from jaxmap.slam.registration import IcpResult, global_register, icp, register  # noqa: F401 (re-exported)
 

@@ -39,7 +39,7 @@ def to_o3d(points: np.ndarray, normals: np.ndarray | None = None):
     return pc
 
 
-def prepare_scan(points_s: np.ndarray, cfg: OdometryConfig, voxel_m: float | None = None, crop_range: bool = True):
+def odometry_points(points_s: np.ndarray, cfg: OdometryConfig, voxel_m: float | None = None, crop_range: bool = True):
     """Range crop, voxel downsample and PCA normals of a scan.
 
     points_s: [N,3] float32, sensor frame -> (points [M,3] float32, normals [M,3] float32), sensor frame.
@@ -61,9 +61,9 @@ class Scan:
     """
 
     def __init__(self, points_s: np.ndarray, cfg: OdometryConfig):
-        self.points, self.normals = prepare_scan(points_s, cfg)
+        self.points, self.normals = odometry_points(points_s, cfg)
         if cfg.coarse_factor > 1:
-            self.coarse_points, self.coarse_normals = prepare_scan(self.points, cfg, cfg.voxel_m * cfg.coarse_factor,
+            self.coarse_points, self.coarse_normals = odometry_points(self.points, cfg, cfg.voxel_m * cfg.coarse_factor,
                                                                    crop_range=False)
         else:
             self.coarse_points, self.coarse_normals = self.points, self.normals
