@@ -234,7 +234,8 @@ def test_growth_from_tiny_capacities_loses_nothing():
     upload = piped.uploader()
     for i, (pts, pose) in enumerate(frames):
         ready, pose = piped.start.prepare(pts, pose, i)
-        piped.submit(upload(Frame(i, i, ready.points, pose, ready.normals, ready.image)).batch, points=len(ready.points))
+        frame = upload(Frame(i, i, ready.points, pose, ready.normals, ready.image))
+        piped.submit(frame.batch, points=len(ready.points))
     piped.finish()
     assert [r["passes"] for r in piped.timings] == [r["passes"] for r in small.timings]
     assert sum(r["passes"] for r in piped.timings) > len(frames)

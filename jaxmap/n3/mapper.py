@@ -40,9 +40,9 @@ class N3Record(TypedDict, total=False):
     Sizes: points (prepared), bucket (padded rows), window_voxels, store_pairs, store_bytes, leaf_voxels,
     feature_rows, feature_bytes, feature_capacity. The frame's training: loss, bce, eikonal, passes (frame
     programs run for it: 1 unless a table grew). Free space: free_dropped, carved, points_filtered,
-    points_void, voxels_free, voxels_void, voxels_raised, rays_left, voxels_untested. Memory: rss_mb, peak_rss_mb. A map of
-    submaps adds submap, submap_frame, submaps, submaps_resident, submaps_on_disk, device_mb; the frame
-    loop adds checkpoint_s."""
+    points_void, voxels_free, voxels_void, voxels_raised, rays_left, voxels_untested. Memory: rss_mb,
+    peak_rss_mb. A map of submaps adds submap, submap_frame, submaps, submaps_resident, submaps_on_disk,
+    device_mb; the frame loop adds checkpoint_s."""
 
     frame: int
     points: int

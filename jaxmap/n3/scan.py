@@ -127,7 +127,7 @@ def to_batch(points_s: np.ndarray, normals_s: np.ndarray, pose: np.ndarray, orig
     return ScanBatch(out_p, out_n, np.arange(bucket) < n, sensor, rot, image)
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class PreparedScan:
     """A scan made ready on the host for an N3 map (`MapStart.prepare`), sensor frame: points [M, 3]
     float32 (preprocessed; with `preprocess.device` only checked), normals [M, 3] float32 (None with
@@ -139,15 +139,16 @@ class PreparedScan:
     image: np.ndarray | None = None
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class MapStart:
     """How an N3 map starts, settled before anything is compiled or allocated.
 
     cfg: the MapConfig with its preprocessing's place decided (`preprocess_device.resolve`) and the
     range-image layout read off the first scan (`resolve_layout`); static: its `N3Static`; anchor: [3]
     float64 the first frame's sensor position in the world (None until a first pose is known), which
-    places the map frame (`origin_vox`: snapped to the coarsest voxel) and a map of submaps' first one. `jaxmap map`, mapping at given poses, SLAM and `N3Mapper` itself
-    start a map from one (`MapStart.of`, then `N3Mapper(start=...)`), and prepare its scans with it."""
+    places the map frame (`origin_vox`: snapped to the coarsest voxel) and a map of submaps' first one.
+    `jaxmap map`, mapping at given poses, SLAM and `N3Mapper` itself start a map from one (`MapStart.of`,
+    then `N3Mapper(start=...)`), and prepare its scans with it."""
 
     cfg: object
     static: N3Static
@@ -198,8 +199,9 @@ class MapStart:
         return batch_of(scan.points, scan.normals, image, pose, origin_w, bucket, self.device)
 
     def uploader(self, bucket: int = 0) -> "Uploader":
-        """The frame loop's last reading stage for this map (`Uploader`), at its origin."""
-        return Uploader(self.origin, self.device, bucket)
+        """The frame loop's last reading stage for this map (`Uploader`), at its origin (the world's before
+        a first pose is known)."""
+        return Uploader(np.zeros(3) if self.anchor is None else self.origin, self.device, bucket)
 
 
 def batch_of(points_s, normals_s, image, pose, origin_w, bucket: int, raw: bool):

@@ -21,7 +21,6 @@ import logging
 import os
 import time
 
-
 from jaxmap import compile_cache
 from jaxmap.config import MapConfig, save_config, shipped_config_path, to_dict
 from jaxmap.errors import CheckpointError, NoCheckpointError
@@ -61,8 +60,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
         mapper = resume_mapper(out_dir, cfg, seq)
         log.info("resuming %s at frame %d of %d", out_dir, mapper.frames, len(seq))
         uploader = mapper.uploader()
-        frames = Prefetcher(seq, mapper.frames, len(seq), functools.partial(prepared_frame, mapper.start.prepare, label=labeller),
-                            then=uploader)
+        load = functools.partial(prepared_frame, mapper.start.prepare, label=labeller)
+        frames = Prefetcher(seq, mapper.frames, len(seq), load, then=uploader)
     else:
         # Frames are read, preprocessed and uploaded while the frame program compiles: the map frame
         # is the first pose's, and the first prepared frame gives the program its shapes.
@@ -72,7 +71,8 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
                             then=uploader)
         try:
             first = frames.first()
-            mapper = new_map(start, os.path.join(out_dir, "submaps"), first_batch=first.batch if first is not None else None)
+            mapper = new_map(start, os.path.join(out_dir, "submaps"),
+                             first_batch=first.batch if first is not None else None)
         except BaseException:
             frames.close()
             raise
