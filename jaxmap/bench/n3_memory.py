@@ -77,7 +77,7 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     with tempfile.TemporaryDirectory(prefix="jaxmap-memory-ckpt-") as d:
         m.save(d)                          # what `jaxmap map` does every checkpoint_every frames
     out["rss_peak"] = hostmem.peak_rss_mb()
-    key, fn = list(core._EXECUTABLES.items())[-1]
+    key, fn = core.PROGRAMS.newest()
     ma = fn.memory_analysis()
     out["program"] = {"arguments": _mb(ma.argument_size_in_bytes), "outputs": _mb(ma.output_size_in_bytes),
                       "aliased": _mb(ma.alias_size_in_bytes), "temporaries": _mb(ma.temp_size_in_bytes)}
@@ -91,7 +91,7 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
         "store pairs": (info["store_pairs"], caps.store_blocks * caps.pairs_per_block),
     }
     out["frames"] = min(frames, len(seq))
-    out["compiles"] = len(core.COMPILE_SECONDS)
+    out["compiles"] = core.PROGRAMS.compiles()
     return out
 
 
