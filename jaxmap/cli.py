@@ -224,10 +224,12 @@ def _view_args(sub) -> None:
 
 def _bench_args(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
-    p.add_argument("suite", choices=["n3", "imt", "slam", "gpu"])
+    p.add_argument("suite", choices=["n3", "imt", "slam", "commands"],
+                   help="commands: what a user waits for, every command (jaxmap map cold and warm with host and "
+                        "device preprocessing, jaxmap imt, jaxmap slam)")
     p.add_argument("--data", default=None,
                    help="where the benchmark scene is, made if missing "
-                        "(n3 and gpu: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
+                        "(n3 and commands: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
     p.add_argument("--out", default=None, help="output directory (default runs/bench_SUITE)")
     p.add_argument("--frames", type=int, default=None)
     p.add_argument("--only", default=None, help="comma-separated subset of variants")
@@ -251,7 +253,7 @@ def _bench_args(sub) -> None:
     p.add_argument("--profile-frames", type=int, default=5, help=argparse.SUPPRESS)
     p.add_argument("--profile-rounds", type=int, default=5, help=argparse.SUPPRESS)
     p.add_argument("--quick", action="store_true",
-                   help="gpu: the small city and room, a few frames each (checks that the whole bench runs)")
+                   help="commands: the small city and room, a few frames each (checks that the whole bench runs)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="override a config key of the benchmark's runs, e.g. --set train.iters=20 (repeatable)")
 

@@ -259,7 +259,7 @@ def _pose_consumers():
     from jaxmap.imt.transform import splat_trilinear
     from jaxmap.imt.vn import rotate_jacobians
     from jaxmap.n3.scan import to_raw
-    from jaxmap.n3.scan_batch import prepare_scan
+    from jaxmap.n3.scan_batch import preprocess_raw
     from jaxmap.n3.state import N3Static
     from jaxmap.slam.track import TrackOptions, grid_search, refine_pose
 
@@ -290,7 +290,7 @@ def _pose_consumers():
             _box_sdf, inside, mask, R, t, jnp.array([1.0, 0.1]), search)).apply(inside), (near, t)),
         ("imt.transform.splat_trilinear", lambda T: splat_trilinear(batch, T, 0.4), (T,)),
         ("imt.vn.rotate_jacobians", lambda R: rotate_jacobians(batch.jac, R), (R,)),
-        ("n3.scan_batch.prepare_scan", lambda raw: prepare_scan(N3Static.from_config(cfg), raw, 1024)[0],
+        ("n3.scan_batch.preprocess_raw", lambda raw: preprocess_raw(N3Static.from_config(cfg), raw, 1024)[0],
          (jax.device_put(raw),)),
     ]
 

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import pytest
 
 from analytic_lidar import corridor_scan, pose_at
 from jaxmap.config import load_config
@@ -249,10 +250,9 @@ def test_growth_from_tiny_capacities_loses_nothing():
 
 
 def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
-    """The frame programs are kept least recently used first and at most EXECUTABLES_KEPT of them
+    """The frame programs are kept least recently used first and at most `PROGRAMS.kept` of them
     (each holds ~2,000 memory maps; a process may hold 65,530): a hit is not compiled again and
-    becomes the newest, the oldest is dropped."""
-    import collections
+    becomes the newest, the oldest is dropped; every compile's seconds are kept."""
     import types
 
     compiled = []
@@ -263,18 +263,22 @@ def test_the_mapper_keeps_its_newest_compiled_programs_and_no_more(monkeypatch):
 
     monkeypatch.setattr(frame, "step_after", Step())
     monkeypatch.setattr(core.Capacities, "of", staticmethod(lambda state: state))
-    monkeypatch.setattr(frame, "EXECUTABLES", collections.OrderedDict())
-    monkeypatch.setattr(frame, "COMPILE_SECONDS", [])
+    programs = core.ProgramCache(kept=core.PROGRAMS.kept)  # this test's, the process's left as it is
+    monkeypatch.setattr(frame, "PROGRAMS", programs)
     batch = types.SimpleNamespace(points=np.zeros((8, 3)))
-    n = core.EXECUTABLES_KEPT
+    n = programs.kept
     assert 2 <= n <= 8  # a few programs for a process that maps again, not hundreds of thousands of maps
     for caps in range(n):
         assert core.compiled_step("static", caps, batch)() == caps
     assert core.compiled_step("static", 0, batch)() == 0 and compiled == list(range(n))  # a hit
     core.compiled_step("static", n, batch)  # one more: the least recently used (1, not 0) goes
-    assert list(frame.EXECUTABLES) == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
+    assert programs.keys() == [("static", c, 8, 0) for c in [*range(2, n), 0, n]]
+    assert programs.newest()[0] == ("static", n, 8, 0)
     core.compiled_step("static", 1, batch)
     assert compiled == [*range(n + 1), 1]
+    assert programs.compiles() == n + 2 and programs.compiles_since(n)["compiles"] == 2
+    core.forget_compiled()
+    assert programs.keys() == [] and programs.compiles() == n + 2  # the programs go, the seconds stay
 
 
 def test_thirty_frames_compile_nothing_after_the_warm_up():
@@ -506,3 +510,29 @@ def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
     save_state(str(tmp_path / "r"), r.cfg, r.state, r.timings)
     _, state, _ = load_state(str(tmp_path / "r"))
     same(state, r.state)
+
+
+def test_a_background_save_runs_one_at_a_time_and_its_error_reaches_the_waiting_thread():
+    """`checkpoint.BackgroundSaves`: busy while the write runs, a second save starts once the first is
+    written, the write's error is raised by `wait` in the caller's thread, once."""
+    import threading
+
+    from jaxmap.n3.checkpoint import BackgroundSaves
+
+    saves, gate, order = BackgroundSaves(), threading.Event(), []
+
+    def first():
+        gate.wait()
+        order.append(1)
+        raise OSError("disk full")
+
+    saves.start(first)
+    assert saves.busy()
+    gate.set()
+    with pytest.raises(OSError, match="disk full"):
+        saves.start(lambda: order.append(2))  # waits for the first, which failed
+    assert order == [1] and not saves.busy()
+    saves.start(lambda: order.append(2))
+    saves.wait()
+    saves.wait()  # nothing left: no error again
+    assert order == [1, 2] and not saves.busy()

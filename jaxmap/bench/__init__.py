@@ -1,4 +1,20 @@
-"""`jaxmap bench`: n3, imt and slam suites (one module each) and what they share."""
+"""`jaxmap bench`: n3, imt, slam and commands suites (one module each) and what they share."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+
+
+def in_subprocess(argv: list[str], cache_dir: str, module: str = "jaxmap.cli") -> tuple[subprocess.CompletedProcess, float]:
+    """`python -m MODULE ARGV` in a fresh process whose persistent compile cache is `cache_dir` (its own:
+    cold when empty, warm once a run filled it), its output captured; (the finished process, its seconds)."""
+    env = dict(os.environ, JAXMAP_CACHE_DIR=cache_dir)
+    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # set by this process's `import jaxmap`
+    t0 = time.perf_counter()
+    res = subprocess.run([sys.executable, "-m", module, *argv], env=env, capture_output=True, text=True)
+    return res, time.perf_counter() - t0
 
 
 def base_overrides(args, data: str, output: str | None = None) -> list[str]:

@@ -34,8 +34,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -49,20 +47,18 @@ COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_
 
 def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str], evaluate: bool = True) -> dict:
     """`jaxmap map configs/city.yaml` in a fresh process with its own compile cache; its summary."""
+    from jaxmap.bench import in_subprocess
     from jaxmap.runs.n3 import city_config_path
 
-    env = dict(os.environ, JAXMAP_CACHE_DIR=cache_dir)
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)  # set by this process's `import jaxmap`
-    cmd = [sys.executable, "-m", "jaxmap.cli", "map", city_config_path(), "--data", data, "--out", out,
-           "--no-progress", "--overwrite"] + [a for o in overrides for a in ("--set", o)]
+    argv = ["map", city_config_path(), "--data", data, "--out", out, "--no-progress", "--overwrite"] + [
+        a for o in overrides for a in ("--set", o)]
     if not evaluate:
-        cmd += ["--no-mesh"]
-    t0 = time.perf_counter()
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        argv += ["--no-mesh"]
+    res, seconds = in_subprocess(argv, cache_dir)
     if res.returncode != 0:
-        raise SystemExit(f"[bench] {' '.join(cmd)} failed:\n{res.stderr[-3000:]}")
+        raise SystemExit(f"[bench] {' '.join(res.args)} failed:\n{res.stderr[-3000:]}")
     summary = json.loads(res.stdout.strip().splitlines()[-1])
-    summary["process_s"] = time.perf_counter() - t0
+    summary["process_s"] = seconds
     with open(os.path.join(out, "timing.json")) as f:
         summary["frames"] = json.load(f)["frames"]
     return summary

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import os
-import subprocess
 import sys
 import tempfile
 
@@ -78,7 +77,7 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
     with tempfile.TemporaryDirectory(prefix="jaxmap-memory-ckpt-") as d:
         m.save(d)                          # what `jaxmap map` does every checkpoint_every frames
     out["rss_peak"] = hostmem.peak_rss_mb()
-    key, fn = list(core._EXECUTABLES.items())[-1]
+    key, fn = core.PROGRAMS.newest()
     ma = fn.memory_analysis()
     out["program"] = {"arguments": _mb(ma.argument_size_in_bytes), "outputs": _mb(ma.output_size_in_bytes),
                       "aliased": _mb(ma.alias_size_in_bytes), "temporaries": _mb(ma.temp_size_in_bytes)}
@@ -92,23 +91,22 @@ def measure(data: str, frames: int, overrides: list[str]) -> dict:
         "store pairs": (info["store_pairs"], caps.store_blocks * caps.pairs_per_block),
     }
     out["frames"] = min(frames, len(seq))
-    out["compiles"] = len(core.COMPILE_SECONDS)
+    out["compiles"] = core.PROGRAMS.compiles()
     return out
 
 
 def run(data: str, frames: int, overrides: list[str]) -> tuple[dict, dict]:
     """`measure` in a fresh process with an empty compile cache (cold), then again with the cache it
     filled (warm: no compile)."""
+    from jaxmap.bench import in_subprocess
+
     out = []
     with tempfile.TemporaryDirectory(prefix="jaxmap-memory-") as cache:
-        env = dict(os.environ, JAXMAP_CACHE_DIR=cache)
-        env.pop("JAX_COMPILATION_CACHE_DIR", None)
-        cmd = [sys.executable, "-m", "jaxmap.bench.n3_memory", data, str(frames)] + [
-            a for o in overrides for a in ("--set", o)]
+        argv = [data, str(frames)] + [a for o in overrides for a in ("--set", o)]
         for _ in ("cold", "warm"):
-            res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+            res, _seconds = in_subprocess(argv, cache, module="jaxmap.bench.n3_memory")
             if res.returncode != 0:
-                raise SystemExit(f"[bench] {' '.join(cmd)} failed:\n{res.stderr[-3000:]}")
+                raise SystemExit(f"[bench] {' '.join(res.args)} failed:\n{res.stderr[-3000:]}")
             out.append(json.loads(res.stdout.strip().splitlines()[-1]))
     return out[0], out[1]
 

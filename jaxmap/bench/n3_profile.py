@@ -157,7 +157,7 @@ def traced_frames(mapper, seq, frames: range) -> tuple[dict, float]:
         (pb,) = glob.glob(os.path.join(d, "**", "*.xplane.pb"), recursive=True)
         ops = exclusive_ms(pb)
     scope = {}
-    for fn in n3frame.EXECUTABLES.values():
+    for fn in n3frame.PROGRAMS.programs():
         scope.update(scope_of_instructions(fn.as_text()))
     by = collections.Counter()
     for name, ms in ops.items():

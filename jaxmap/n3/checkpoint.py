@@ -185,7 +185,43 @@ def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, ext
     save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings, extra), step=int(state.frame))
 
 
-_PENDING: list = []  # the one background save in flight: [thread, error or None]
+class BackgroundSaves:
+    """The checkpoint being written in a background thread, at most one at a time (`save_state_async`
+    waits for the one before), and the error it raised, re-raised in the thread that waits for it."""
+
+    def __init__(self):
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def start(self, work) -> None:
+        """Run `work()` in a background thread, once the save before it is written."""
+        self.wait()
+
+        def run():
+            try:
+                work()
+            except BaseException as e:  # noqa: BLE001 - re-raised by wait() in the caller's thread
+                self._error = e
+
+        self._thread = threading.Thread(target=run, name="jaxmap-checkpoint", daemon=True)
+        self._thread.start()
+
+    def busy(self) -> bool:
+        """Is a save still being written?"""
+        return self._thread is not None and self._thread.is_alive()
+
+    def wait(self) -> None:
+        """Block until the save (if any) is written; re-raise its error (once)."""
+        if self._thread is None:
+            return
+        self._thread.join()
+        err, self._thread, self._error = self._error, None, None
+        if err is not None:
+            raise err
+
+
+# This process's background checkpoint writes: the one mutable state of this module.
+SAVES = BackgroundSaves()
 
 
 # A copy of the whole state on the device, one program (leaf by leaf, the copies compiled one small
@@ -195,38 +231,23 @@ _snapshot = jax.jit(lambda state: jax.tree_util.tree_map(jnp.copy, state))
 
 def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, copy: bool = True,
                      extra: dict | None = None) -> None:
-    """Like `save_state`, but written in a background thread from a copy of the state made on the device
-    (`_snapshot`: asynchronous, in order before the next frame program, which donates the state's
+    """Like `save_state`, but written in a background thread (`SAVES`) from a copy of the state made on the
+    device (`_snapshot`: asynchronous, in order before the next frame program, which donates the state's
     buffers), so the caller goes on at once; copy=False: from `state` itself, which nothing may change
     until it is written. Call `wait_for_saves()` before relying on the files."""
     wait_for_saves()
     snapshot, timings = _snapshot(state) if copy else state, list(timings)
-    slot = [None, None]
-
-    def work():
-        try:
-            _write(path, cfg, snapshot, timings, extra)
-        except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
-            slot[1] = e
-
-    slot[0] = threading.Thread(target=work, name="jaxmap-checkpoint", daemon=True)
-    slot[0].start()
-    _PENDING.append(slot)
+    SAVES.start(lambda: _write(path, cfg, snapshot, timings, extra))
 
 
 def saving() -> bool:
     """Is a background save still being written?"""
-    return any(t.is_alive() for t, _ in _PENDING)
+    return SAVES.busy()
 
 
 def wait_for_saves() -> None:
     """Block until the background save (if any) is written; re-raise its error."""
-    while _PENDING:
-        thread, _ = _PENDING[0]
-        thread.join()
-        _, err = _PENDING.pop(0)
-        if err is not None:
-            raise err
+    SAVES.wait()
 
 
 def load_state(path: str) -> tuple[MapConfig, n3state.N3State, list]:

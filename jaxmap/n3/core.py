@@ -15,16 +15,15 @@ Where each part lives, read top to bottom:
   - `jaxmap.n3.integrate`: one scan into the map (sample, allocate, store, slide, carve);
   - `jaxmap.n3.train`: K iterations of batch selection, loss and Adam;
   - `jaxmap.n3.frame`: `step` (both in one donated program), growth and the host's frame driver
-    (`FramePipeline`: frames dispatched ahead of their stats).
+    (`FramePipeline`: frames dispatched ahead of their stats), with this process's compiled frame programs
+    (`PROGRAMS`, a `ProgramCache`: the programs kept and every compile's seconds).
 """
 from jaxmap.grid.features import FEATURE_INIT_BLOCK
 from jaxmap.n3.frame import (
-    COMPILE_SECONDS,
-    compiles_since,
-    EXECUTABLES,
-    EXECUTABLES_KEPT,
+    PROGRAMS,
     FrameDone,
     FramePipeline,
+    ProgramCache,
     compiled_step,
     forget_compiled,
     frames_held_jit,
@@ -37,20 +36,17 @@ from jaxmap.n3.frame import (
 )
 from jaxmap.n3.integrate import FrameStats, integrate
 from jaxmap.n3.query import query, query_grad_jit, query_jit
-from jaxmap.n3.scan_batch import RawScan, ScanBatch, count_kept, prepare_scan
+from jaxmap.n3.scan_batch import RawScan, ScanBatch, count_kept, preprocess_raw
 from jaxmap.n3.state import (Capacities, Hyper, N3State, N3Static, capacities_for, init_state, origin_vox_for,
                              origin_world, set_origin)
 from jaxmap.n3.train import TrainStats, train
 from jaxmap.sizes import pow2
 
-# `jaxmap.bench.n3_memory` reads the executable cache by its former private name.
-_EXECUTABLES = EXECUTABLES
-
 __all__ = [
-    "COMPILE_SECONDS", "compiles_since", "EXECUTABLES", "EXECUTABLES_KEPT", "FEATURE_INIT_BLOCK", "Capacities", "FrameDone",
-    "FramePipeline", "FrameStats", "Hyper",
+    "PROGRAMS", "FEATURE_INIT_BLOCK", "Capacities", "FrameDone",
+    "FramePipeline", "FrameStats", "Hyper", "ProgramCache",
     "N3State", "N3Static", "RawScan", "ScanBatch", "TrainStats", "capacities_for", "compiled_step", "count_kept",
     "forget_compiled", "frames_held_jit", "grow_for", "init_state", "integrate", "origin_vox_for", "origin_world", "pow2",
-    "prepare_scan", "query", "query_grad_jit", "query_jit", "run_frame", "set_origin", "step", "step_after", "step_raw",
+    "preprocess_raw", "query", "query_grad_jit", "query_jit", "run_frame", "set_origin", "step", "step_after", "step_raw",
     "store_bytes", "train",
 ]

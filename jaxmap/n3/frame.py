@@ -13,6 +13,10 @@ PRNG key did not advance, so the host grows what the stats name (`grow_for`, out
 start. `FramePipeline` does that loop one frame behind the device (the next frame is dispatched
 before this one's stats are read, and does nothing if this one did not fit), with one compiled
 program per shape (`compiled_step`, a small least-recently-used cache); `run_frame` is one frame of it.
+
+Process state (the rest of the module is functions and per-run objects): `PROGRAMS`, the compiled frame
+programs and the seconds their compiles took (a `ProgramCache`; `forget_compiled` empties it), and
+`_STATS_READER`, the one thread that reads dispatched frames' stats.
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ from jaxmap.grid.features import init_feature_rows
 from jaxmap.n3 import evidence as n3evidence
 from jaxmap.n3 import pool, window
 from jaxmap.n3.integrate import FrameStats, integrate
-from jaxmap.n3.scan_batch import RawScan, ScanBatch, prepare_scan
+from jaxmap.n3.scan_batch import RawScan, ScanBatch, preprocess_raw
 from jaxmap.n3.state import Capacities, N3State, N3Static
 from jaxmap.n3.train import TrainStats, train
 from jaxmap.sizes import bucket_for, pow2
@@ -57,7 +61,7 @@ def step(static: N3Static, state: N3State, scan: ScanBatch):
 def step_raw(static: N3Static, state: N3State, raw: RawScan, rows: int):
     """`step` of a raw scan: preprocessing, integrate and train in one compiled program. When the
     preprocessed scan has more points than `rows`, nothing is stored or trained (`scan_overflow`)."""
-    scan, kept, overflow = jax.named_call(prepare_scan, name="preprocess")(static, raw, rows)
+    scan, kept, overflow = jax.named_call(preprocess_raw, name="preprocess")(static, raw, rows)
     key, k_sample, k_train = jax.random.split(state.key, 3)
     state, fstats = integrate(static, state, scan, k_sample, fits=~overflow)
     state, tstats = train(static, state, k_train, active=fstats.ok)
@@ -180,33 +184,77 @@ def store_bytes(store) -> int:
 # frames on the host: compile once per shape, dispatch ahead, read the stats late, retry, grow
 # ---------------------------------------------------------------------------------------------
 
-# (static, capacities, scan bucket, preprocessed rows) -> compiled `step_after`, least recently used
-# first. Bounded: an XLA:CPU frame program keeps its machine code in ~2,000 memory maps, a Linux
-# process may hold 65,530 (vm.max_map_count), and a process that maps many times (a notebook, the test
-# suite) aborted inside XLA once an unbounded cache had kept every program it ever compiled. Capacities
-# only grow during a drive, so a drive never returns to an evicted key.
-EXECUTABLES: collections.OrderedDict = collections.OrderedDict()
-EXECUTABLES_KEPT = 4
-COMPILE_SECONDS: list = []  # seconds of every compile of the frame program in this process (benchmarks read it)
+class ProgramCache:
+    """The compiled frame programs (`step_after`) of this process and the seconds each compile took.
+
+    Keys: (static, capacities, scan bucket, preprocessed rows); `get` of a key makes it the newest, `put`
+    drops the least recently used beyond `kept`. Bounded: an XLA:CPU frame program keeps its machine code
+    in ~2,000 memory maps, a Linux process may hold 65,530 (vm.max_map_count), and a process that maps
+    many times (a notebook, the test suite) aborted inside XLA once an unbounded cache had kept every
+    program it ever compiled. Capacities only grow during a drive, so a drive never returns to an
+    evicted key. `compile_seconds` is every compile of this process, in order (never dropped): a run
+    takes `compiles()` when it starts and reports `compiles_since` that mark.
+    """
+
+    def __init__(self, kept: int = 4):
+        self.kept = kept
+        self._programs: collections.OrderedDict = collections.OrderedDict()
+        self.compile_seconds: list[float] = []
+
+    def get(self, key):
+        """The program of `key` (made the newest), or None."""
+        fn = self._programs.get(key)
+        if fn is not None:
+            self._programs.move_to_end(key)
+        return fn
+
+    def put(self, key, fn, seconds: float) -> None:
+        """Keep `fn`, compiled for `key` in `seconds`, as the newest; drop the oldest beyond `kept`."""
+        self.compile_seconds.append(seconds)
+        self._programs[key] = fn
+        while len(self._programs) > self.kept:
+            self._programs.popitem(last=False)
+
+    def keys(self) -> list:
+        """The keys of the programs kept, least recently used first."""
+        return list(self._programs)
+
+    def programs(self) -> list:
+        """The programs kept, least recently used first."""
+        return list(self._programs.values())
+
+    def newest(self) -> tuple:
+        """(key, program) of the program used last."""
+        return next(reversed(self._programs.items()))
+
+    def compiles(self) -> int:
+        """How many frame programs this process has compiled."""
+        return len(self.compile_seconds)
+
+    def compiles_since(self, n: int) -> dict:
+        """`{"compile_s", "compiles"}` of the compiles after the first `n` (`n = compiles()` taken when a run
+        starts): what a run's timing.json reports."""
+        return {"compile_s": float(sum(self.compile_seconds[n:])), "compiles": len(self.compile_seconds) - n}
+
+    def clear(self) -> None:
+        """Drop the programs kept (their memory maps go with them); the compile seconds stay."""
+        self._programs.clear()
+
+
+# This process's frame programs: the one mutable cache of this module (`compiled_step` fills it).
+PROGRAMS = ProgramCache()
 _PREV_OK = jax.ShapeDtypeStruct((), jnp.bool_)
-
-
-def compiles_since(n: int) -> dict:
-    """`{"compile_s", "compiles"}` of the frame program's compiles after the first `n` of this process
-    (`n = len(COMPILE_SECONDS)` taken when a run starts): what a run's timing.json reports."""
-    return {"compile_s": float(sum(COMPILE_SECONDS[n:])), "compiles": len(COMPILE_SECONDS) - n}
 
 
 def compiled_step(static: N3Static, state: N3State, batch, rows: int = 0):
     """The compiled frame program (`step_after`) of a ScanBatch, or of a RawScan preprocessed into `rows`
-    rows, for these shapes, compiled (and logged) on first use. Compiling ahead of time, instead of on
-    the first call, lets the log say what the wait is before it starts. Returns fn(state, batch, prev_ok)."""
+    rows, for these shapes, compiled (and logged) on first use and kept in `PROGRAMS`. Compiling ahead of
+    time, instead of on the first call, lets the log say what the wait is before it starts. Returns
+    fn(state, batch, prev_ok)."""
     raw = isinstance(batch, RawScan)
     key = (static, Capacities.of(state), batch.points.shape[0], rows if raw else 0)
-    fn = EXECUTABLES.get(key)
-    if fn is not None:
-        EXECUTABLES.move_to_end(key)
-    else:
+    fn = PROGRAMS.get(key)
+    if fn is None:
         est = compile_cache.estimate("n3_step")
         log.info("compiling the mapper (one time for these table sizes%s)",
                  f", up to about {est:.0f} s" if est else ", usually 5-30 s the first time on a machine")
@@ -215,17 +263,14 @@ def compiled_step(static: N3Static, state: N3State, batch, rows: int = 0):
         secs = time.perf_counter() - t0
         hostmem.trim()  # the compiler's ~1 GB of freed heap back to the system, not held for the drive
         compile_cache.record("n3_step", secs)
-        COMPILE_SECONDS.append(secs)
         log.info("compiled in %.1f s", secs)
-        EXECUTABLES[key] = fn
-        while len(EXECUTABLES) > EXECUTABLES_KEPT:
-            EXECUTABLES.popitem(last=False)
+        PROGRAMS.put(key, fn, secs)
     return fn
 
 
 def forget_compiled() -> None:
     """Drop the compiled frame programs this process keeps (their memory maps go with them)."""
-    EXECUTABLES.clear()
+    PROGRAMS.clear()
 
 
 class FrameDone(NamedTuple):

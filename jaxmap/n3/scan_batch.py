@@ -39,7 +39,7 @@ class RawScan(NamedTuple):
     translation: jax.Array  # [3] float32 sensor position, map frame
 
 
-def prepare_scan(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, jax.Array, jax.Array]:
+def preprocess_raw(static: N3Static, raw: RawScan, rows: int) -> tuple[ScanBatch, jax.Array, jax.Array]:
     """Crop, downsample and normals of a raw scan (`jaxmap.preprocess_device`), its kept points in
     their input order moved to the map frame and packed into `rows` rows (padding as `scan.to_batch`).
     Returns (ScanBatch [rows], points kept [] int32, overflow [] bool: more kept points than rows)."""

@@ -30,7 +30,7 @@ from jaxmap.frame_loop import (Checkpoints, Prefetcher, Progress, SubmitSteps, o
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import dynamic
 from jaxmap.n3 import checkpoint
-from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
+from jaxmap.n3.core import PROGRAMS
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart
 from jaxmap.n3.submap_mapper import load_map, new_map
@@ -52,7 +52,7 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     (`jaxmap.rundir.Interrupted`). The caller owns out_dir (`jaxmap.rundir.claim` in the CLI).
     """
     os.makedirs(out_dir, exist_ok=True)
-    ckpt, t_start, n_compiles = os.path.join(out_dir, "checkpoint"), time.perf_counter(), len(COMPILE_SECONDS)
+    ckpt, t_start, n_compiles = os.path.join(out_dir, "checkpoint"), time.perf_counter(), PROGRAMS.compiles()
     seq = open_run_sequence(cfg)
     scores = dynamic.RunScores.of_sequence(cfg.data.path)  # None: no moving objects to score
     labeller = scores.label if scores is not None else None
@@ -89,7 +89,7 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
     steps = SubmitSteps(mapper, on_finished=scores.counter(mapper.voxel_coords) if scores is not None else None)
     loop = run_frames(frames, steps, total=len(seq), start=mapper.frames, progress=bar,
                       viewer=viewer, checkpoints=saves, t_start=t_start)
-    extra = {**compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
+    extra = {**PROGRAMS.compiles_since(n_compiles), "peak_rss_mapping_mb": peak_rss_mb(),
              "store_frames_held": mapper.frames_held()}
     return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, mesh=mesh, extra=extra, viewer=viewer,
                       point_scores=scores.result(mapper.void_voxels()) if scores is not None else None,

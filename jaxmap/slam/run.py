@@ -43,7 +43,7 @@ from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Frame, FramesRun, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
-from jaxmap.n3.core import COMPILE_SECONDS, compiles_since
+from jaxmap.n3.core import PROGRAMS
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.n3slam import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend, show_loop
 from jaxmap.slam.odometry_common import Scan
@@ -252,7 +252,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
     `N3Mapper.load`s; n3_config.yaml is the map's resolved config). track: a tracker in place of
     `jaxmap.slam.track.track_scan` (tests)."""
     seq = open_run_sequence(cfg)
-    n_compiles = len(COMPILE_SECONDS)
+    n_compiles = PROGRAMS.compiles()
     step = None
     if resume:
         mapper, step = load_slam(out_dir)
@@ -271,7 +271,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
            "step": res["step_medians"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
     rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer,
-                     extra=compiles_since(n_compiles))
+                     extra=PROGRAMS.compiles_since(n_compiles))
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     write_slam_summary(out_dir, out)
     return out

@@ -1,6 +1,8 @@
-"""`jaxmap bench gpu`: what issue 31 measures on an accelerator, in one run and one file.
+"""`jaxmap bench commands`: what a user waits for, every command: the whole-run cost of `jaxmap map` (cold
+and warm, host and device preprocessing), `jaxmap imt` and `jaxmap slam`, in one run and one file (on any
+backend; issue 31 ran it on a GPU).
 
-    jaxmap bench gpu [--out runs/bench_gpu] [--data data/city_bench] [--quick]
+    jaxmap bench commands [--out runs/bench_commands] [--data data/city_bench] [--quick] [--only n3,imt,slam]
 
   1. the machine: jax version, backend and devices, CPU cores, the load average;
   2. the N3 speed table on the default city (`jaxmap synth city`, 130 frames, made once under --data):
@@ -11,8 +13,8 @@
   3. `jaxmap imt configs/room_imt.yaml` on the synthetic room (`jaxmap synth room`, made once beside the
      city): wall s/frame, the preprocessing and the encode program's medians;
   4. `jaxmap slam configs/city_slam.yaml` on the city: wall s/frame, its steps' medians.
-Each part is written as soon as it is done to OUT/gpu.json (and the tables to OUT/gpu.txt), so a run
-cut short keeps what it measured. --quick: the small city and room, a few frames each (a check, on a
+Each part is written as soon as it is done to OUT/commands.json (and the tables to OUT/commands.txt), so a
+run cut short keeps what it measured. --quick: the small city and room, a few frames each (a check, on a
 CPU, that the whole script runs).
 """
 from __future__ import annotations
@@ -21,8 +23,6 @@ import json
 import os
 import platform
 import shutil
-import subprocess
-import sys
 import time
 
 QUICK_FRAMES = 6
@@ -53,51 +53,51 @@ def n3_speed(city: str, out: str, quick: bool) -> dict:
                                       frames + [f"preprocess.device={device}"], evaluate=False)
             except SystemExit as e:  # the run failed: say so in the file, go on with the others
                 rows[name] = {"failed": str(e)[-3000:]}
-                print(f"[bench gpu] {name}: FAILED\n{e}", flush=True)
+                print(f"[bench commands] {name}: FAILED\n{e}", flush=True)
                 continue
             rows[name] = {**speed_row(s), "process_s": s["process_s"]}
-            print(f"[bench gpu] {name}: {rows[name]['s_per_frame']:.3f} s/frame", flush=True)
+            print(f"[bench commands] {name}: {rows[name]['s_per_frame']:.3f} s/frame", flush=True)
     return rows
 
 
 def command_run(args: list[str], out: str, cache: str) -> dict:
     """`jaxmap ARGS --out OUT` in its own process with the compile cache `cache`; its timing.json summary
     (with a SLAM run's steps, frames and keyframes from its slam.json), and the process's seconds."""
-    env = dict(os.environ, JAXMAP_CACHE_DIR=cache)
-    env.pop("JAX_COMPILATION_CACHE_DIR", None)
-    cmd = [sys.executable, "-m", "jaxmap.cli", *args, "--out", out, "--overwrite", "--no-progress"]
-    t0 = time.perf_counter()
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    from jaxmap.bench import in_subprocess
+
+    res, seconds = in_subprocess([*args, "--out", out, "--overwrite", "--no-progress"], cache)
     if res.returncode != 0:
-        return {"failed": " ".join(cmd), "stderr": res.stderr[-3000:]}
+        return {"failed": " ".join(res.args), "stderr": res.stderr[-3000:]}
     with open(os.path.join(out, "timing.json")) as f:
         summary = json.load(f)["summary"]
     slam = os.path.join(out, "slam.json")  # a SLAM run's summary
     if os.path.isfile(slam):
         with open(slam) as f:
             summary.update({k: v for k, v in json.load(f).items() if k in ("step", "frames", "keyframes")})
-    return {**summary, "process_s": time.perf_counter() - t0}
+    return {**summary, "process_s": seconds}
+
+
+def command_speed(command: str, config: str, data: str, out: str, cache: str, sets: list[str],
+                  keys: tuple) -> dict:
+    """`jaxmap COMMAND <shipped config> --data DATA SETS` (`command_run`, into OUT/COMMAND): `keys` of its
+    summary, and "failed" / "stderr" when it failed."""
+    from jaxmap.config import shipped_config_path
+
+    r = command_run([command, shipped_config_path(config), "--data", data, *sets], os.path.join(out, command), cache)
+    return {k: r[k] for k in (*keys, "process_s", "failed", "stderr") if k in r}
 
 
 def slam_speed(city: str, out: str, quick: bool) -> dict:
-    from jaxmap.config import shipped_config_path
-
     sets = ["--set", "n3." + EVAL_SAMPLES[1]] + (["--set", f"data.end_frame={QUICK_FRAMES}"] if quick else [])
-    r = command_run(["slam", shipped_config_path("city_slam.yaml"), "--data", city, *sets],
-                    os.path.join(out, "slam"), os.path.join(out, "xla_cache_host"))
-    keys = ("wall_s", "wall_s_per_frame", "frames_run", "compile_s", "step", "process_s", "failed", "stderr")
-    return {k: r[k] for k in keys if k in r}
+    return command_speed("slam", "city_slam.yaml", city, out, os.path.join(out, "xla_cache_host"), sets,
+                         ("wall_s", "wall_s_per_frame", "frames_run", "compile_s", "step"))
 
 
 def imt_speed(room: str, out: str, quick: bool) -> dict:
-    from jaxmap.config import shipped_config_path
-
     sets = EVAL_SAMPLES + (["--set", f"data.end_frame={2 * QUICK_FRAMES}"] if quick else [])
-    r = command_run(["imt", shipped_config_path("room_imt.yaml"), "--data", room, *sets],
-                    os.path.join(out, "imt"), os.path.join(out, "xla_cache_imt"))
-    keys = ("wall_s", "wall_s_per_frame", "frames_run", "median_preprocess_s", "median_encode_s", "median_fuse_s",
-            "process_s", "failed", "stderr")
-    return {k: r[k] for k in keys if k in r}
+    return command_speed("imt", "room_imt.yaml", room, out, os.path.join(out, "xla_cache_imt"), sets,
+                         ("wall_s", "wall_s_per_frame", "frames_run", "median_preprocess_s", "median_encode_s",
+                          "median_fuse_s"))
 
 
 def tables(res: dict) -> str:
@@ -152,26 +152,26 @@ def main(args) -> int:
 
     def save():
         res["elapsed_s"] = time.perf_counter() - t0
-        with open(os.path.join(out, "gpu.json"), "w") as f:
+        with open(os.path.join(out, "commands.json"), "w") as f:
             json.dump(res, f, indent=1, default=float)
-        with open(os.path.join(out, "gpu.txt"), "w") as f:
+        with open(os.path.join(out, "commands.txt"), "w") as f:
             f.write(tables(res))
 
     for path, make in ((city, lambda: generate_city(city, seed=0, small=quick)),
                        (room, lambda: generate_room(room, seed=0, small=quick))):
         if not os.path.isfile(os.path.join(path, "poses.txt")):
             t = time.perf_counter()
-            print(f"[bench gpu] synthesizing {path}", flush=True)
+            print(f"[bench commands] synthesizing {path}", flush=True)
             make()
             res.setdefault("synth_s", {})[path] = time.perf_counter() - t
     save()
     for name, run in (("n3", lambda: n3_speed(city, out, quick)), ("imt", lambda: imt_speed(room, out, quick)),
                       ("slam", lambda: slam_speed(city, out, quick))):
         if name in only:
-            print(f"[bench gpu] {name} ({time.perf_counter() - t0:.0f} s in)", flush=True)
+            print(f"[bench commands] {name} ({time.perf_counter() - t0:.0f} s in)", flush=True)
             res[name] = run()
             save()
     print()
     print(tables(res))
-    print(f"[bench gpu] written to {os.path.join(out, 'gpu.json')} and gpu.txt ({time.perf_counter() - t0:.0f} s)")
+    print(f"[bench commands] written to {os.path.join(out, 'commands.json')} and commands.txt ({time.perf_counter() - t0:.0f} s)")
     return 0
