@@ -497,6 +497,44 @@ def test_imt_run_on_the_small_room_and_checkpoint_round_trip(small_room, tmp_pat
                                atol=1e-5)
 
 
+def test_a_background_save_equals_a_foreground_save_and_the_map_goes_on_meanwhile(small_room, tmp_path,
+                                                                                   monkeypatch):
+    """`ImtMapper.save(path, background=True)` writes a device copy of the map in a thread: the next frame
+    maps (its step donates the map's buffers) while the save is held back, and the checkpoint equals a
+    foreground save of the same map, array for array."""
+    import threading
+
+    from jaxmap.config import ImtConfig, load_config
+    from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.imt import mapper as mp
+
+    cfg = load_config("room_imt", [f"data.path={small_room}", "data.end_frame=4", "data.every_frame=1"], ImtConfig)
+    seq = open_run_sequence(cfg)
+    mapper = mp.ImtMapper(cfg)
+    for i in range(3):
+        fr = seq.frame(i)
+        mapper.add_frame(fr.points, fr.pose)
+    mapper.save(str(tmp_path / "fg"))
+    go, real = threading.Event(), mp.save_tree
+    monkeypatch.setattr(mp, "save_tree", lambda *a, **k: (go.wait(120), real(*a, **k))[1])
+    saved = mapper.map
+    mapper.save(str(tmp_path / "bg"), background=True)
+    assert mp.saving()
+    fr = seq.frame(3)
+    mapper.add_frame(fr.points, fr.pose)                     # maps while the save waits
+    assert saved.weight.is_deleted() and mp.saving()
+    go.set()
+    mp.wait_for_saves()
+    assert not mp.saving()
+    fg, bg = mp.ImtMapper.load(str(tmp_path / "fg")), mp.ImtMapper.load(str(tmp_path / "bg"))
+    assert len(bg.store) == 3 and len(mapper.store) == 4 and bg.timings == fg.timings
+    for a, b in zip(jax.tree_util.tree_leaves(fg.map), jax.tree_util.tree_leaves(bg.map)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for k, v in fg.store.to_arrays().items():
+        np.testing.assert_array_equal(v, bg.store.to_arrays()[k])
+    assert bg.map.num_active() > 0
+
+
 def test_imt_config_rejects_an_unknown_key(tmp_path, capsys):
     from jaxmap.cli import main
 
