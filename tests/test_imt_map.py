@@ -18,8 +18,8 @@ from jaxmap.imt import core
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt import load_prior
 from jaxmap.imt.meshing import mesh, query
-from jaxmap.imt.remap import KeyframeStore, contributions
-from jaxmap.imt.transform import transform
+from jaxmap.imt.keyframe_store import KeyframeStore, contributions
+from jaxmap.imt.interpolation import transform
 
 C = 18
 

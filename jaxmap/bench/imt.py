@@ -56,7 +56,7 @@ def _mesh_pair_error(A, B, n: int = 100_000) -> tuple[float, float]:
 
 def two_branch(mapper, seq, ids, cfg) -> dict:
     from jaxmap.geometry import se3_inverse
-    from jaxmap.imt.transform import transform
+    from jaxmap.imt.interpolation import transform
 
     vs = cfg.map.voxel_size_m
     variants = {

@@ -20,10 +20,10 @@ from jaxmap.imt.prior import Prior, init_prior, load_prior, save_prior
 from jaxmap.imt.latent_map import (LatentMap, VoxelBatch, encode_cells, encode_frame, encode_keyframes, encode_world,
                                    fuse, pool_cells, remove)
 from jaxmap.imt.meshing import mesh, query
-from jaxmap.imt.remap import KeyframeStore, RemapOptions
+from jaxmap.imt.keyframe_store import KeyframeStore, RemapOptions
 from jaxmap.imt.latent_store import LatentStore
 from jaxmap.imt.core import CellBatch, ImtState, ImtStatic, StepStats, init, integrate, remap, step
-from jaxmap.imt.transform import transform, transform_batch
+from jaxmap.imt.interpolation import transform, transform_batch
 from jaxmap.imt.vn import (
     Jac,
     Vec,

@@ -16,7 +16,7 @@ nothing (the insert reverts itself, the scatter is masked) and says so; the host
 with the same result as if the capacity had been there from the start.
 
 Frames: the map is in the world frame; the keyframe store keeps every keyframe's pooled cells in its
-*sensor* frame (`remap.KeyframeStore`), and every encode, the first fusion as much as a removal or a
+*sensor* frame (`keyframe_store.KeyframeStore`), and every encode, the first fusion as much as a removal or a
 re-fusion by `remap`, takes its world-frame cells from one function, `KeyframeStore.cells_at` (float64
 on the host), so a removal subtracts exactly what was fused: `remove(fuse(M, L), L) == M` up to the
 rounding of the sums.
@@ -57,8 +57,8 @@ import numpy as np
 from jaxmap.grid import hashing
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.latent_store import COMPACT, LatentStore, RowBatch
-from jaxmap.imt.remap import KeyframeStore, RemapOptions, moved_keyframes
-from jaxmap.imt.transform import splat_trilinear
+from jaxmap.imt.keyframe_store import KeyframeStore, RemapOptions, moved_keyframes
+from jaxmap.imt.interpolation import splat_trilinear
 
 log = logging.getLogger("jaxmap")
 
@@ -74,7 +74,7 @@ class ImtStatic:
     min_points: int            # voxels fed by fewer points of a keyframe are dropped
     cells_per_voxel: int       # pooling of a frame's points before encoding (0 = every point)
     remap: str = "reencode"    # "reencode" (keyframes keep pooled cells) | "transform" (latent local maps)
-    jacobian_sign: float = -1.0  # transform: the first-order term (see `transform.py`)
+    jacobian_sign: float = -1.0  # transform: the first-order term (see `interpolation.py`)
     splat_power: float = 2.0     # transform: sharpened trilinear splats
 
     @classmethod

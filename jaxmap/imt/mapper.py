@@ -35,7 +35,7 @@ from jaxmap.imt import latent_map as lm
 from jaxmap.imt.meshing import mesh as mesh_map
 from jaxmap.imt.meshing import query
 from jaxmap.imt.prior import load_prior
-from jaxmap.imt.remap import RemapOptions
+from jaxmap.imt.keyframe_store import RemapOptions
 from jaxmap.preprocess import preprocess_scan
 from jaxmap.snapshot import copy_arrays
 
