@@ -32,6 +32,7 @@ from jaxmap.geometry import SE3, validate_pose
 from jaxmap.grid.hashing import HashTable
 from jaxmap.imt import core
 from jaxmap.imt import latent_map as lm
+from jaxmap.imt.local_maps import encode_frame
 from jaxmap.imt.meshing import mesh as mesh_map
 from jaxmap.imt.meshing import query
 from jaxmap.imt.prior import load_prior
@@ -88,6 +89,7 @@ class ImtMapper:
         # ("compiled", map capacity, padded cell count) -> the step shapes run; "frame_pad" -> the frames' pad;
         # ("move_step", map capacity) -> move_step ran (transform); "remap_group_cells" -> cells a remap batch holds
         self.hints: dict = {}
+        self.local_hints: dict = {}   # the same for `encode`'s local maps (other programs than the map's)
         self.timings: list[dict] = []
         self.remaps: list[dict] = []
 
@@ -127,11 +129,11 @@ class ImtMapper:
         transformed local map is compared with one pooled on another grid, and one cell per voxel doubles
         that difference (two-branch test 0.78 cm against 0.41 cm at 2 and 0.39 cm unpooled, `jaxmap bench
         imt`). The map's own path (`add_frame`, `remap`) re-encodes the same stored cells, so it keeps the
-        coarser, 4x cheaper `map.cells_per_voxel`."""
+        coarser, 4x cheaper `map.cells_per_voxel`. The frame program encodes it (`local_maps.encode_frame`)."""
         c = self.cfg.map
         cpv = c.transform_cells_per_voxel if with_jacobian else c.cells_per_voxel
-        return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
-                               with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.hints)
+        return encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
+                            with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.local_hints)
 
     def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None,
                   prepared: HostScan | None = None) -> dict:
