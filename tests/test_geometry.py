@@ -256,7 +256,7 @@ def _pose_consumers():
     """(name, fn, args) of every place a pose moves float32 points on the device."""
     from jaxmap.config import load_config
     from jaxmap.imt.latent_map import VoxelBatch
-    from jaxmap.imt.transform import splat_trilinear
+    from jaxmap.imt.interpolation import splat_trilinear
     from jaxmap.imt.vn import rotate_jacobians
     from jaxmap.n3.scan import to_raw
     from jaxmap.n3.scan_batch import preprocess_raw
@@ -288,7 +288,7 @@ def _pose_consumers():
          (P, near, t)),
         ("slam.track.grid_search", lambda R, t: SE3.from_rotation_and_translation(*grid_search(
             _box_sdf, inside, mask, R, t, jnp.array([1.0, 0.1]), search)).apply(inside), (near, t)),
-        ("imt.transform.splat_trilinear", lambda T: splat_trilinear(batch, T, 0.4), (T,)),
+        ("imt.interpolation.splat_trilinear", lambda T: splat_trilinear(batch, T, 0.4), (T,)),
         ("imt.vn.rotate_jacobians", lambda R: rotate_jacobians(batch.jac, R), (R,)),
         ("n3.scan_batch.preprocess_raw", lambda raw: preprocess_raw(N3Static.from_config(cfg), raw, 1024)[0],
          (jax.device_put(raw),)),

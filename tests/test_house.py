@@ -120,3 +120,22 @@ def test_maps_stay_below_the_run_layer():
     up = [f"{m} imports {d}" for m, deps in edges.items() if m.startswith(("jaxmap.n3", "jaxmap.imt"))
           for d in deps if d.startswith(RUN_LAYER)]
     assert not up, up
+
+
+def test_no_package_attribute_shadows_its_submodule():
+    """After `import jaxmap.pkg`, `jaxmap.pkg.name` is the submodule `name` wherever such a submodule
+    exists: a function exported under a module's name (`jaxmap.imt.remap` the function, not the module)
+    makes `import jaxmap.pkg.name as m` and `jaxmap.pkg.name.x` mean different things by import order."""
+    import importlib
+    import pkgutil
+    import sys
+
+    shadowed = []
+    for init in sorted(PKG.rglob("__init__.py")):
+        name = ".".join(init.parent.relative_to(PKG.parent).parts)
+        pkg = importlib.import_module(name)
+        for sub in pkgutil.iter_modules(pkg.__path__):
+            full = f"{name}.{sub.name}"
+            if hasattr(pkg, sub.name) and getattr(pkg, sub.name) is not sys.modules.get(full):
+                shadowed.append(f"{full}: {getattr(pkg, sub.name)!r}")
+    assert not shadowed, "package attributes that shadow a submodule:\n" + "\n".join(shadowed)

@@ -10,7 +10,7 @@ import pytest
 from jaxmap.geometry import make_pose, random_rotation
 from jaxmap.imt import core, load_prior
 from jaxmap.imt import latent_map as lm
-from jaxmap.imt.remap import KeyframeStore
+from jaxmap.imt.keyframe_store import KeyframeStore
 
 STATIC = core.ImtStatic(voxel_size=0.1, min_points=10, cells_per_voxel=1)
 

@@ -22,7 +22,7 @@ from jaxmap.imt import core, load_prior
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.latent_store import LatentStore
 from jaxmap.imt.meshing import query
-from jaxmap.imt.remap import KeyframeStore
+from jaxmap.imt.keyframe_store import KeyframeStore
 
 VS = 0.1
 LATENT = core.ImtStatic(voxel_size=VS, min_points=10, cells_per_voxel=1, remap="transform")

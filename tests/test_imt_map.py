@@ -1,4 +1,5 @@
-"""The transformable latent map: fuse/remove, encode_frame, transform, remap, mesh, runs.
+"""The transformable latent map: fuse/remove, encode_frame, transform, remap, mesh, runs (the local maps of
+`jaxmap.imt.local_maps`: the compiled programs of the map of a sequence on one local map).
 
 Fast implementations are checked against slow, obviously-correct references (a dict for eq. 11,
 a per-voxel loop for the encoder), and the geometry against exact cases.
@@ -18,8 +19,8 @@ from jaxmap.imt import core
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt import load_prior
 from jaxmap.imt.meshing import mesh, query
-from jaxmap.imt.remap import KeyframeStore, contributions
-from jaxmap.imt.transform import transform
+from jaxmap.imt.keyframe_store import KeyframeStore
+from jaxmap.imt.local_maps import encode_cells, encode_world, fuse, keyframes_map, remove, transform
 
 C = 18
 
@@ -75,7 +76,7 @@ def test_fuse_matches_a_dict_reference_with_duplicates_and_growth():
     ref = {}
     for _ in range(3):
         b = random_batch(rng, 300)  # ~2/3 of the voxels repeat inside a batch
-        m = lm.fuse(m, b)
+        m = fuse(m, b)
         ref = dict_apply(ref, b, +1.0)
     assert m.table.capacity >= 2 * len(ref)
     assert m.jac_sum is None                    # the global map keeps no Jacobians
@@ -84,12 +85,12 @@ def test_fuse_matches_a_dict_reference_with_duplicates_and_growth():
 
 def test_fuse_then_remove_restores_the_sums_to_1e6_relative():
     rng = np.random.default_rng(1)
-    m = lm.fuse(lm.empty(0.1, capacity=2048), random_batch(rng, 400))
+    m = fuse(lm.empty(0.1, capacity=2048), random_batch(rng, 400))
     for _ in range(5):                          # weights drain back and forth: no precision is lost
         local = random_batch(rng, 200, span=6)  # overlaps m, and adds new voxels
-        back = lm.remove(lm.fuse(m, local), local)
+        back = remove(fuse(m, local), local)
         assert back.rows == m.rows
-        scale = float(np.abs(np.asarray(lm.fuse(m, local).latent_sum)).max())
+        scale = float(np.abs(np.asarray(fuse(m, local).latent_sum)).max())
         np.testing.assert_allclose(np.asarray(back.latent_sum), np.asarray(m.latent_sum), rtol=0, atol=1e-6 * scale)
         np.testing.assert_allclose(np.asarray(back.weight), np.asarray(m.weight), rtol=0,
                                    atol=1e-6 * float(np.asarray(m.weight).max()))
@@ -105,17 +106,17 @@ def test_fuse_then_remove_restores_the_sums_to_1e6_relative():
 def test_a_signed_batch_removes_and_fuses_in_one_scatter():
     rng = np.random.default_rng(12)
     a, b = random_batch(rng, 150), random_batch(rng, 150, span=5)
-    m = lm.fuse(lm.empty(0.1), a)
+    m = fuse(lm.empty(0.1), a)
     neg = a._replace(weight=-np.asarray(a.weight))
     both = lm.concat_batches([neg, b])
-    assert_maps_equal(lm.to_dict(lm.fuse(m, both)), lm.to_dict(lm.fuse(lm.empty(0.1), b)), atol=1e-4)
+    assert_maps_equal(lm.to_dict(fuse(m, both)), lm.to_dict(fuse(lm.empty(0.1), b)), atol=1e-4)
 
 
 def test_fuse_touches_only_the_rows_of_the_batch():
     rng = np.random.default_rng(13)
-    m = lm.fuse(lm.empty(0.1, capacity=4096), random_batch(rng, 500, span=8))
+    m = fuse(lm.empty(0.1, capacity=4096), random_batch(rng, 500, span=8))
     b = random_batch(rng, 20, span=2)
-    out = lm.fuse(m, b)
+    out = fuse(m, b)
     rows = set(np.asarray(jnp.asarray(__import__("jaxmap.grid.hashing", fromlist=["lookup"]).lookup(
         out.table, lm.voxel_keys(jnp.asarray(b.coords))))).tolist())
     other = np.setdiff1d(np.arange(m.rows), list(rows))
@@ -126,13 +127,13 @@ def test_fuse_touches_only_the_rows_of_the_batch():
 def test_remove_of_everything_frees_every_voxel_and_unknown_voxels_raise():
     rng = np.random.default_rng(2)
     b = random_batch(rng, 100)
-    m = lm.remove(lm.fuse(lm.empty(0.1), b), b)
+    m = remove(fuse(lm.empty(0.1), b), b)
     assert m.num_active() == 0
     assert np.all(np.isfinite(np.asarray(m.latent)))  # the division is guarded
     other = lm.VoxelBatch(np.array([[100, 100, 100]], np.int32), np.asarray(b.latent)[:1], None,
                           np.array([1.0], np.float32), np.array([True]))
     with pytest.raises(ValueError, match="not in the global map"):
-        lm.remove(m, other)
+        remove(m, other)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -145,7 +146,7 @@ def test_rotate_on_a_latent_map_equals_rotating_its_fields_and_raises_on_unmarke
     from jaxmap.imt.vn import rotate, rotate_jacobians
 
     rng = np.random.default_rng(14)
-    m = lm.fuse(lm.empty(0.1, with_jacobian=True), random_batch(rng, 200, jac=True))
+    m = fuse(lm.empty(0.1, with_jacobian=True), random_batch(rng, 200, jac=True))
     R = random_rotation(rng)
     out = rotate(m, R)
     R32 = jnp.asarray(R, jnp.float32)
@@ -207,7 +208,7 @@ def test_encode_world_matches_a_per_voxel_loop(prior):
     rng = np.random.default_rng(3)
     pts, nrm, _ = scene(rng, 1500)
     vs = 0.125
-    m = lm.encode_world(prior, pts, nrm, vs, min_points=5, capacity=512, cells_per_voxel=0)  # must retry, grow
+    m = encode_world(prior, pts, nrm, vs, min_points=5, capacity=1024, cells_per_voxel=0)  # the map must grow
     got = lm.to_dict(m)
     u = pts / vs - 0.5
     checked = 0
@@ -238,13 +239,13 @@ def test_an_encode_that_overflowed_starts_at_the_size_that_worked_next_time(prio
     nrm = np.tile(np.array([[0.0, 0.0, 1.0]], np.float32), (len(cells), 1))
     cnt = np.full(len(cells), 20, np.float32)
     calls = []
-    core = lm._encode_core
-    monkeypatch.setattr(lm, "_encode_core", lambda *a, **k: calls.append(a[-2]) or core(*a, **k))
+    step = core.step
+    monkeypatch.setattr(core, "step", lambda *a, **k: calls.append(a[4]) or step(*a, **k))
     hints = {}
-    first = lm.encode_cells(prior, cells, nrm, cnt, 0.1, with_jacobian=False, hints=hints)
+    first = encode_cells(prior, cells, nrm, cnt, 0.1, with_jacobian=False, hints=hints)
     assert len(calls) >= 2 and calls[-1] > calls[0]                  # overflowed, then grew
     calls.clear()
-    again = lm.encode_cells(prior, cells, nrm, cnt, 0.1, with_jacobian=False, hints=hints)
+    again = encode_cells(prior, cells, nrm, cnt, 0.1, with_jacobian=False, hints=hints)
     assert len(calls) == 1
     assert first.num_active() == again.num_active() == 8 * len(cells)  # every voxel of every cell kept
 
@@ -259,7 +260,7 @@ def test_rotation_about_a_voxel_centre_equals_encoding_rotated_points(prior):
     n = rng.normal(size=(60, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     f, j, cnt = prior.encode_with_jacobian(jnp.asarray(p, jnp.float32), jnp.asarray(n, jnp.float32))
-    one = lm.fuse(lm.empty(vs, with_jacobian=True),
+    one = fuse(lm.empty(vs, with_jacobian=True),
                   lm.VoxelBatch(v[None].astype(np.int32), np.asarray(f)[None], np.asarray(j)[None],
                                 np.asarray([cnt], np.float32), np.array([True])))
     R = random_rotation(rng)
@@ -278,8 +279,8 @@ def two_branch_error(prior, sign, rng_seed=5):
     pts, nrm, ctr = scene(rng, 2000)
     vs = 0.1
     T = make_pose(random_rotation(rng), np.array([0.437, -0.261, 0.093]))
-    a = transform(lm.encode_world(prior, pts, nrm, vs), T, jacobian_sign=sign)
-    b = lm.encode_world(prior, transform_points(T, pts), nrm @ T[:3, :3].T, vs)
+    a = transform(encode_world(prior, pts, nrm, vs), T, jacobian_sign=sign)
+    b = encode_world(prior, transform_points(T, pts), nrm @ T[:3, :3].T, vs)
     probe = transform_points(T, pts[::7] + 0.02 * rng.normal(size=(len(pts[::7]), 3)))
     sa, _, va = query(prior, a, probe)
     sb, _, vb = query(prior, b, probe)
@@ -297,7 +298,7 @@ def test_transform_there_and_back_returns_the_decoded_sdf(prior):
     rng = np.random.default_rng(6)
     pts, nrm, _ = scene(rng, 2000)
     vs = 0.1
-    m = lm.encode_world(prior, pts, nrm, vs)
+    m = encode_world(prior, pts, nrm, vs)
     T = make_pose(random_rotation(rng), np.array([0.31, 0.17, -0.52]))
     back = transform(transform(m, T), se3_inverse(T))
     probe = pts[::5] + 0.02 * rng.normal(size=(len(pts[::5]), 3))
@@ -335,7 +336,7 @@ def small_store(prior, rng, n_kf=3, poses=None):
         used = pose if poses is None else poses[k]
         cells = lm.pool_cells(transform_points(used, local_pts), local_nrm @ used[:3, :3].T, vs)
         store = store.add(k, *cells, used)
-        m = lm.fuse(m, contributions(prior, store, [k], used[None], vs))
+        m = fuse(m, keyframes_map(prior, store, [k], used[None], vs))
     return m, store, np.asarray(true)
 
 
@@ -372,7 +373,7 @@ def test_remap_moves_only_changed_keyframes_and_equals_a_fresh_fusion(prior):
     np.testing.assert_allclose(store2.poses(), new)
     np.testing.assert_array_equal(store.poses(), old)                 # the store is immutable
     store = store2
-    fresh = lm.fuse(lm.empty(0.1), contributions(prior, store, [0, 1, 2], list(new), 0.1))
+    fresh = keyframes_map(prior, store, [0, 1, 2], list(new), 0.1)
     assert_maps_equal(lm.to_dict(out), lm.to_dict(fresh), atol=1e-4)
     # and back: the original contribution is fused again (re-encoded, nothing accumulates)
     back, store, changed = remap(out, store, poses, prior)
@@ -382,7 +383,7 @@ def test_remap_moves_only_changed_keyframes_and_equals_a_fresh_fusion(prior):
     new2 = np.asarray([make_pose(random_rotation(rng), [0.0, 0.02, 0.0]) @ P for P in poses])
     rebuilt, store, changed = remap(back, store, new2, prior)
     assert changed == [0, 1, 2]
-    fresh2 = lm.fuse(lm.empty(0.1), contributions(prior, store, [0, 1, 2], list(new2), 0.1))
+    fresh2 = keyframes_map(prior, store, [0, 1, 2], list(new2), 0.1)
     assert_maps_equal(lm.to_dict(rebuilt), lm.to_dict(fresh2), atol=1e-4)
 
 
@@ -428,8 +429,8 @@ def test_keyframe_store_round_trips_and_its_compact_precision(prior):
     np.testing.assert_allclose(back[0], cells[0], atol=1e-6)
     np.testing.assert_allclose(back[1], cells[1], atol=5e-4)
     np.testing.assert_array_equal(back[2], cells[2])
-    full = lm.fuse(lm.empty(0.1), lm.encode_keyframes(prior, *cells, np.zeros(len(cells[0]), np.int32), 1, 0.1))
-    kept = lm.fuse(lm.empty(0.1), contributions(prior, store, [0], store.poses()[:1], 0.1))
+    full = encode_cells(prior, *cells, 0.1, with_jacobian=False)
+    kept = keyframes_map(prior, store, [0], store.poses()[:1], 0.1)
     a, b = lm.to_dict(full), lm.to_dict(kept)
     assert a.keys() == b.keys()
     scale = max(float(np.abs(v[0]).max()) for v in a.values())
@@ -441,8 +442,8 @@ def test_keyframe_store_round_trips_and_its_compact_precision(prior):
 def test_pooled_cells_keep_the_exact_counts_and_move_the_sdf_by_millimetres(prior):
     rng = np.random.default_rng(17)
     pts, nrm, _ = scene(rng, 2000)
-    every = lm.encode_world(prior, pts, nrm, 0.1, cells_per_voxel=0)
-    pooled = lm.encode_world(prior, pts, nrm, 0.1, cells_per_voxel=1)
+    every = encode_world(prior, pts, nrm, 0.1, cells_per_voxel=0)
+    pooled = encode_world(prior, pts, nrm, 0.1, cells_per_voxel=1)
     a, b = lm.to_dict(every), lm.to_dict(pooled)
     assert a.keys() == b.keys() and all(a[k][2] == b[k][2] for k in a)     # same voxels, exact counts
     probe = pts[::5] + 0.01 * rng.normal(size=(len(pts[::5]), 3))
@@ -462,7 +463,7 @@ def test_pooled_cells_keep_the_exact_counts_and_move_the_sdf_by_millimetres(prio
 def test_mesh_of_a_sphere_lies_on_the_sphere(prior):
     rng = np.random.default_rng(10)
     pts, nrm, ctr = scene(rng, 2000)
-    m = lm.encode_world(prior, pts, nrm, 0.1)
+    m = encode_world(prior, pts, nrm, 0.1)
     tm = mesh(prior, m, resolution=4, sigma_threshold_m=0.15, min_weight=10)
     assert len(tm.faces) > 500
     v = np.asarray(tm.vertices)
@@ -495,6 +496,44 @@ def test_imt_run_on_the_small_room_and_checkpoint_round_trip(small_room, tmp_pat
     assert len(again.faces) == len(ref.faces)
     np.testing.assert_allclose(np.sort(np.asarray(again.vertices), axis=0), np.sort(np.asarray(ref.vertices), axis=0),
                                atol=1e-5)
+
+
+def test_a_background_save_equals_a_foreground_save_and_the_map_goes_on_meanwhile(small_room, tmp_path,
+                                                                                   monkeypatch):
+    """`ImtMapper.save(path, background=True)` writes a device copy of the map in a thread: the next frame
+    maps (its step donates the map's buffers) while the save is held back, and the checkpoint equals a
+    foreground save of the same map, array for array."""
+    import threading
+
+    from jaxmap.config import ImtConfig, load_config
+    from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.imt import mapper as mp
+
+    cfg = load_config("room_imt", [f"data.path={small_room}", "data.end_frame=4", "data.every_frame=1"], ImtConfig)
+    seq = open_run_sequence(cfg)
+    mapper = mp.ImtMapper(cfg)
+    for i in range(3):
+        fr = seq.frame(i)
+        mapper.add_frame(fr.points, fr.pose)
+    mapper.save(str(tmp_path / "fg"))
+    go, real = threading.Event(), mp.save_tree
+    monkeypatch.setattr(mp, "save_tree", lambda *a, **k: (go.wait(120), real(*a, **k))[1])
+    saved = mapper.map
+    mapper.save(str(tmp_path / "bg"), background=True)
+    assert mp.saving()
+    fr = seq.frame(3)
+    mapper.add_frame(fr.points, fr.pose)                     # maps while the save waits
+    assert saved.weight.is_deleted() and mp.saving()
+    go.set()
+    mp.wait_for_saves()
+    assert not mp.saving()
+    fg, bg = mp.ImtMapper.load(str(tmp_path / "fg")), mp.ImtMapper.load(str(tmp_path / "bg"))
+    assert len(bg.store) == 3 and len(mapper.store) == 4 and bg.timings == fg.timings
+    for a, b in zip(jax.tree_util.tree_leaves(fg.map), jax.tree_util.tree_leaves(bg.map)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for k, v in fg.store.to_arrays().items():
+        np.testing.assert_array_equal(v, bg.store.to_arrays()[k])
+    assert bg.map.num_active() > 0
 
 
 def test_imt_config_rejects_an_unknown_key(tmp_path, capsys):

@@ -285,3 +285,46 @@ def test_n3_background_mesh_while_mapping(caplog):
     # frames were mapped while a mesh was being made (those frames' requests were skipped as busy)
     assert hooks.worker.runs >= 1 and hooks.worker.skipped >= 1 and len(meshes) == hooks.worker.runs
     assert all(len(m.faces) > 100 for m in meshes)
+
+
+def test_imt_map_meshes_in_the_background_while_frames_are_added(small_room, caplog):
+    """The IMT map's live mesh works on a snapshot taken between frames: a snapshot meshed after the next
+    frame's step (which donates the map's buffers) is the map as it was, and a mapping loop with the
+    viewer's mesh thread meshing every frame finishes with meshes and no failed extraction."""
+    import logging
+
+    from jaxmap.config import ImtConfig, load_config
+    from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.imt.mapper import ImtMapper
+    from jaxmap.runs.imt import fuse_sequence
+
+    cfg = load_config("room_imt", [f"data.path={small_room}", "data.end_frame=5", "data.every_frame=1",
+                                   "mesh.resolution=4"], ImtConfig)
+    seq = open_run_sequence(cfg)
+    mapper = ImtMapper(cfg)
+    fuse_sequence(mapper, seq, progress=False)
+    live = mapper.live_mesh()
+    snap = live["snapshot_fn"]()
+    ref = live["mesh_fn"](mapper.map)
+    before = mapper.map
+    fr = seq.frame(0)
+    mapper.add_frame(fr.points, fr.pose)                    # the step donates the map the snapshot copied
+    assert before.weight.is_deleted()
+    again = live["mesh_fn"](snap)
+    np.testing.assert_array_equal(np.asarray(again.vertices), np.asarray(ref.vertices))
+
+    mapper = ImtMapper(cfg)
+    meshes = []
+    hooks = attach_viewer(port=free_port(), mesh_every=1, mesh_max_share=0, quiet=True, **mapper.live_mesh())
+    hooks.on_mesh = lambda m: meshes.append(m)
+    hooks.worker.on_mesh = hooks.on_mesh
+    try:
+        with caplog.at_level(logging.WARNING, logger="jaxmap"):
+            fuse_sequence(mapper, seq, progress=False, viewer=hooks)
+            hooks.worker.join(60)
+    finally:
+        hooks.close()
+    # every frame asked for a mesh: one ran, or was still running (then the frame skipped it) while it mapped
+    assert hooks.worker.runs + hooks.worker.skipped == len(seq)
+    assert meshes and all(len(m.faces) > 0 for m in meshes)
+    assert not [r for r in caplog.records if "mesh extraction failed" in r.getMessage()]

@@ -56,7 +56,7 @@ def _mesh_pair_error(A, B, n: int = 100_000) -> tuple[float, float]:
 
 def two_branch(mapper, seq, ids, cfg) -> dict:
     from jaxmap.geometry import se3_inverse
-    from jaxmap.imt.transform import transform
+    from jaxmap.imt.local_maps import transform
 
     vs = cfg.map.voxel_size_m
     variants = {
@@ -99,10 +99,12 @@ def _median_time(fn, repeats: int) -> float:
 
 
 def time_encode(mapper, seq, ids) -> dict:
-    """Median seconds of one frame's encode for the map (no Jacobian) and with the Jacobian, and the
-    cells / points of those frames."""
+    """Median seconds of one frame's encode for the map (no Jacobian) and with the Jacobian (each the frame
+    program on an empty map, `local_maps.encode_cells`: encode and fuse), and the cells / points of those
+    frames."""
     from jaxmap.geometry import SE3
     from jaxmap.imt import latent_map as lm
+    from jaxmap.imt.local_maps import encode_cells
 
     c = mapper.cfg.map
     t_map, t_jac, cells, cells_jac, points = [], [], [], [], []
@@ -115,9 +117,9 @@ def time_encode(mapper, seq, ids) -> dict:
 
         def enc_map():
             cl = lm.pool_cells(pw, nw, c.voxel_size_m, c.cells_per_voxel)
-            b = lm.encode_keyframes(mapper.prior, *cl, np.zeros(len(cl[0]), np.int32), 1, c.voxel_size_m,
-                                    c.min_points, hints=mapper.hints)
-            jax.block_until_ready(b.latent)
+            m = encode_cells(mapper.prior, *cl, c.voxel_size_m, c.min_points, with_jacobian=False,
+                             hints=mapper.local_hints)
+            jax.block_until_ready(m.latent_sum)
             return cl
 
         def enc_jac():

@@ -16,7 +16,7 @@ nothing (the insert reverts itself, the scatter is masked) and says so; the host
 with the same result as if the capacity had been there from the start.
 
 Frames: the map is in the world frame; the keyframe store keeps every keyframe's pooled cells in its
-*sensor* frame (`remap.KeyframeStore`), and every encode, the first fusion as much as a removal or a
+*sensor* frame (`keyframe_store.KeyframeStore`), and every encode, the first fusion as much as a removal or a
 re-fusion by `remap`, takes its world-frame cells from one function, `KeyframeStore.cells_at` (float64
 on the host), so a removal subtracts exactly what was fused: `remove(fuse(M, L), L) == M` up to the
 rounding of the sums.
@@ -57,8 +57,8 @@ import numpy as np
 from jaxmap.grid import hashing
 from jaxmap.imt import latent_map as lm
 from jaxmap.imt.latent_store import COMPACT, LatentStore, RowBatch
-from jaxmap.imt.remap import KeyframeStore, RemapOptions, moved_keyframes
-from jaxmap.imt.transform import splat_trilinear
+from jaxmap.imt.keyframe_store import KeyframeStore, RemapOptions, moved_keyframes
+from jaxmap.imt.interpolation import splat_trilinear
 
 log = logging.getLogger("jaxmap")
 
@@ -74,7 +74,7 @@ class ImtStatic:
     min_points: int            # voxels fed by fewer points of a keyframe are dropped
     cells_per_voxel: int       # pooling of a frame's points before encoding (0 = every point)
     remap: str = "reencode"    # "reencode" (keyframes keep pooled cells) | "transform" (latent local maps)
-    jacobian_sign: float = -1.0  # transform: the first-order term (see `transform.py`)
+    jacobian_sign: float = -1.0  # transform: the first-order term (see `interpolation.py`)
     splat_power: float = 2.0     # transform: sharpened trilinear splats
 
     @classmethod
@@ -129,7 +129,7 @@ def count_active(m: lm.LatentMap) -> jax.Array:
 
 
 def state_of(m: lm.LatentMap) -> ImtState:
-    """The state of a map built elsewhere (a checkpoint, `latent_map.fuse`)."""
+    """The state of a map built elsewhere (a checkpoint, `local_maps`)."""
     return ImtState(m, count_active(m))
 
 
@@ -177,13 +177,15 @@ def step(static: ImtStatic, state: ImtState, prior, batch: CellBatch, encode_cap
 
     With `static.remap == "transform"` the encode also gives each voxel's translation Jacobian, and the
     latents are rounded to the store's float16 before they are fused, so that the store holds exactly
-    what the map holds. Returns (state, StepStats, local): local = (coords [R, 3], latent [R, C, 3] f16,
+    what the map holds. A map that keeps Jacobians (a local map of `local_maps.encode_cells`) gets their
+    sums too (a program of its own: the map's pytree differs). Returns (state, StepStats, local): local = (coords [R, 3], latent [R, C, 3] f16,
     jac [R, C, 3, 3] f16, weight [R]) of the batch's voxels (weight 0 = unused row) in that mode, else None.
     When `stats.ok` is False the state is unchanged: grow and call again."""
     latent = static.remap == "transform"
+    with_jacobian = latent or state.map.jac_sum is not None   # a local map that keeps them (`local_maps`)
     coords, lat_sum, jac_sum, w, levels, _, enc_over = lm.encode_pairs(
         prior, batch.cells, batch.normals, batch.counts, batch.slot, jnp.float32(static.min_points),
-        static.voxel_size, encode_capacity, latent)
+        static.voxel_size, encode_capacity, with_jacobian)
     local = None
     if latent:
         lat16, jac16 = lm.mean_of(lat_sum, w).astype(COMPACT), lm.mean_of(jac_sum, w).astype(COMPACT)
@@ -191,9 +193,19 @@ def step(static: ImtStatic, state: ImtState, prior, batch: CellBatch, encode_cap
         b = lm.VoxelBatch(coords, lat16.astype(jnp.float32), None, sw, sw != 0)
         local = (coords, lat16, jac16, w)
     else:
-        b = lm.signed_batch(coords, lat_sum, w, levels, batch.signs)
+        b = lm.signed_batch(coords, lat_sum, w, levels, batch.signs, jac_sum)
     state, stats = _fuse(state, b, enc_over)
     return state, stats, local
+
+
+@functools.partial(jax.jit, donate_argnums=0)
+def fuse_step(state: ImtState, b: lm.VoxelBatch):
+    """The step's fusion alone (eq. 11), for voxel records already encoded: a local map's rows or a batch
+    (`local_maps.fuse` / `remove`; negative weights remove). One compiled program per batch size, the
+    state donated; the batch's Jacobians are fused when the map keeps them. Returns (state, StepStats,
+    None); when `stats.ok` is False the state is unchanged: grow and call again (`fuse_batch`)."""
+    state, stats = _fuse(state, b, jnp.zeros((), bool))
+    return state, stats, None
 
 
 @functools.partial(jax.jit, static_argnums=0, donate_argnums=1)
@@ -407,7 +419,14 @@ def move_keyframes(static: ImtStatic, state: ImtState, store: LatentStore, ids, 
 
 
 def _no_scratch():
-    raise AssertionError("move_step has no scratch table")
+    raise AssertionError("move_step and fuse_step have no scratch table")
+
+
+def fuse_batch(state: ImtState, b: lm.VoxelBatch, log_growth: bool = True):
+    """`fuse_step` until the batch is in, the map grown as its stats ask. Returns (state, StepStats as
+    numpy)."""
+    state, stats, _ = _until_in(lambda s: fuse_step(s, b), state, _no_scratch, log_growth)
+    return state, stats
 
 
 def remap(static: ImtStatic, state: ImtState, store, prior, new_poses, opts: RemapOptions = RemapOptions(),

@@ -1,4 +1,4 @@
-"""The transformable latent map: a sparse voxel grid of equivariant latents, with fuse and remove.
+"""The transformable latent map: a sparse voxel grid of equivariant latents, and its traceable parts.
 
 Grid and frames: voxel `v` (int32 `[3]`) of side `voxel_size` (metres) has its centre at
 `(v + 0.5) * voxel_size` in the frame of the map (the world frame for the global map and for the
@@ -19,7 +19,8 @@ Layout (read like mctx's `Tree`: a frozen dataclass of preallocated arrays with 
 
 with `R = T // 2` rows (load <= 0.5), handed out in insertion order, never moved; latents divided on read.
 
-Fusion and removal (IMT paper eq. 11) store sums, so they touch only the rows of the batch:
+Fusion and removal (IMT paper eq. 11, `scatter`, run inside the compiled steps of `jaxmap.imt.core`;
+`local_maps.fuse` / `remove` on a map as a value) store sums, so they touch only the rows of the batch:
 `S <- S +- sum_k w_k F_k`, `w <- w +- sum_k w_k` (the same for J), for every entry of a batch at once,
 duplicates included. `remove(fuse(M, L), L) == M` up to the rounding of the sums (no division, so no
 loss of precision as the weight drains). A touched row whose weight falls below `FREE_WEIGHT` is freed
@@ -30,16 +31,16 @@ latent (a mean), Jacobian (or None), weight and validity. Fusing a batch whose v
 same as fusing them one after the other, which is what lets `transform` hand its trilinear splats
 straight to `fuse` and `remap` fuse any number of keyframes in one scatter.
 
-Encoding (`encode_world`, `encode_frame`, `encode_cells`): a frame's points are first pooled into
-cells of `voxel_size / cells_per_voxel` aligned with the voxel cubes (`pool_cells`: centroid, mean
-normal, count), and each cell feeds the 8 voxels whose 2x cube holds it, weighted by its count; the
+Encoding (`encode_pairs`, inside `core.step`; `local_maps.encode_frame` on a frame as a value): a frame's
+points are first pooled into cells of `voxel_size / cells_per_voxel` aligned with the voxel cubes
+(`pool_cells`: centroid, mean normal, count), and each cell feeds the 8 voxels whose 2x cube holds it, weighted by its count; the
 voxel's latent is the count-weighted mean of the encoder's per-point features at the centroids (a
 quadrature of the mean over the points) and its weight the exact number of points. With one cell per
 voxel this is 8 x ~2k (cell, voxel) pairs for a room frame instead of 8 x 31k, and the decoded SDF
 moves by 0.6 mm (`jaxmap bench imt`); `cells_per_voxel = 0` feeds every point.
 
-Capacity: `fuse` grows the table (`hashing.insert_grow`, outside jit, logged); the encoders retry with a bigger
-scratch table on overflow (the caller's `hints` keep the size). `remove` of a voxel not held raises.
+Capacity: fixed inside jit; the steps say when the map's table or the encode's scratch table is full, and
+the host grows it (`pad_rows`, `encode_capacity`: the caller's `hints` keep the size) and runs them again.
 """
 from __future__ import annotations
 
@@ -52,8 +53,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.errors import DataError
-from jaxmap.geometry import SE3
 from jaxmap.grid import hashing
 from jaxmap.grid.features import CORNER_OFFSETS  # the 8 voxels whose centres surround a point
 from jaxmap.imt.encoder import translation_jacobian
@@ -218,57 +217,6 @@ def scatter(m: LatentMap, rows: jax.Array, b: VoxelBatch, sign: float) -> Latent
     return LatentMap(m.table, coords, latent_sum, weight, jac_sum, m.voxel_size)
 
 
-_scatter = jax.jit(scatter, static_argnames=("sign",))
-
-
-def _check_batch(m: LatentMap, b: VoxelBatch) -> None:
-    if m.jac_sum is not None and b.jac is None:
-        raise ValueError("this map keeps Jacobians: the batch must carry them too")
-
-
-def fuse(m: LatentMap, b: LatentMap | VoxelBatch, log: bool = True) -> LatentMap:
-    """Fuse a local map (or a voxel batch) into `m` (eq. 11, `+`; entries with negative weights are removed).
-    Grows `m` when needed (host-side, logged on the "jaxmap" logger unless `log` is False). Jacobians of `b`
-    are dropped when `m` keeps none.
-
-    Both must use the same voxel size (checked for maps) and the same frame.
-    """
-    if isinstance(b, LatentMap):
-        _check_same_grid(m, b)
-        b = b.as_batch()
-    _check_batch(m, b)
-    ok = jnp.asarray(b.valid) & (jnp.asarray(b.weight) != 0)
-    table, rows = hashing.insert_grow(m.table, voxel_keys(jnp.asarray(b.coords)), ok, max_load=MAX_LOAD, log=log)
-    return _scatter(pad_rows(m, table), rows, b, 1.0)
-
-
-@jax.jit
-def _lookup_rows(table, coords, valid, weight):
-    rows = hashing.lookup(table, voxel_keys(coords))
-    missing = jnp.any(valid & (weight != 0) & (rows < 0))
-    return rows, missing
-
-
-def remove(m: LatentMap, b: LatentMap | VoxelBatch) -> LatentMap:
-    """Remove a previously fused local map (or voxel batch) from `m` (eq. 11, `-`).
-
-    Raises ValueError if a voxel of `b` is not in `m` (it was never fused: removing it would be a bug).
-    """
-    if isinstance(b, LatentMap):
-        _check_same_grid(m, b)
-        b = b.as_batch()
-    _check_batch(m, b)
-    rows, missing = _lookup_rows(m.table, jnp.asarray(b.coords), jnp.asarray(b.valid), jnp.asarray(b.weight))
-    if bool(missing):
-        raise ValueError("remove: a voxel of the batch is not in the global map (was it ever fused?)")
-    return _scatter(m, rows, b, -1.0)
-
-
-def _check_same_grid(a: LatentMap, b: LatentMap) -> None:
-    if not math.isclose(a.voxel_size, b.voxel_size, rel_tol=1e-6):
-        raise ValueError(f"voxel sizes differ: {a.voxel_size} vs {b.voxel_size} m")
-
-
 def to_dict(m: LatentMap | VoxelBatch) -> dict:
     """Host-side `{voxel tuple: (latent, jac or None, weight)}` of the active voxels (a slow reference,
     for tests and inspection). Batches with repeated voxels are not accepted."""
@@ -367,9 +315,6 @@ def encode_pairs(prior, cells, normals, counts, level, min_points, voxel_size: f
     return coords, lat, jac, jnp.where(keep, count, 0.0), levels, table, overflow
 
 
-_encode_core = jax.jit(encode_pairs, static_argnames=("voxel_size", "capacity", "with_jacobian"))
-
-
 def pad(x, n_pad: int, dtype, fill=0):
     x = np.asarray(x, dtype)
     return np.concatenate([x, np.full((n_pad - len(x),) + x.shape[1:], fill, dtype)])
@@ -382,119 +327,15 @@ def encode_capacity(n_pad: int, hints: dict) -> int:
     return max(1 << max(10, math.ceil(math.log2(4 * n_pad))), hints.get(n_pad, 0))
 
 
-def _encode_padded(prior, cells, normals, counts, level, voxel_size, min_points, with_jacobian, capacity=None,
-                   hints: dict | None = None):
-    """Encode cells already padded to a bucketed count (`bucket`); retry with a bigger table on overflow.
-    hints: {padded count: table size that sufficed}, owned by the caller (an `ImtMapper` keeps one), so a
-    sequence retries (and compiles the bigger table) once, not every call."""
-    n_pad = cells.shape[0]
-    args = (cells, normals, counts, level)
-    hints = {} if hints is None else hints
-    capacity = encode_capacity(n_pad, hints) if capacity is None else capacity
-    while True:
-        out = _encode_core(prior, *args, jnp.float32(min_points), float(voxel_size), int(capacity),
-                           bool(with_jacobian))
-        if not bool(out[-1]):
-            hints[n_pad] = max(capacity, hints.get(n_pad, 0))
-            return out[:-1]
-        capacity *= 2
-        if capacity > hashing.MAX_CAPACITY:
-            raise hashing.CapacityError(f"encode: more than {hashing.MAX_CAPACITY // 2} voxels in one frame")
-
-
-def _points_and_normals(points, normals) -> tuple[np.ndarray, np.ndarray]:
-    """Both as float32 [N,3], checked (a ValueError for shapes, a DataError for NaN/inf)."""
-    points = np.asarray(points, np.float32)
-    normals = np.asarray(normals, np.float32)
-    if points.ndim != 2 or points.shape[1] != 3 or normals.shape != points.shape:
-        raise ValueError(f"points and normals must both be [N,3], got {points.shape} and {normals.shape}")
-    if not (np.all(np.isfinite(points)) and np.all(np.isfinite(normals))):
-        raise DataError("encode: points or normals contain NaN/inf; drop them first (jaxmap.io does)")
-    return points, normals
-
-
-def encode_cells(prior, cells, normals, counts, voxel_size: float, min_points: int = 10,
-                 with_jacobian: bool = True, capacity: int | None = None, hints: dict | None = None) -> LatentMap:
-    """The local map of pooled cells (`pool_cells`), map frame. See `encode_world`; `hints` as `_encode_padded`."""
-    cells, normals = _points_and_normals(cells, normals)
-    n_pad = bucket(len(cells))
-    coords, lat, jac, w, _, table = _encode_padded(
-        prior, pad(cells, n_pad, np.float32), pad(normals, n_pad, np.float32), pad(counts, n_pad, np.float32),
-        np.zeros(n_pad, np.int32), voxel_size, min_points, with_jacobian, capacity, hints)
-    return LatentMap(table, coords, lat, w, jac, float(voxel_size))
-
-
-def encode_world(prior, points_w, normals_w, voxel_size: float, min_points: int = 10,
-                 with_jacobian: bool = True, capacity: int | None = None, cells_per_voxel: int = 1,
-                 hints: dict | None = None) -> LatentMap:
-    """Encode world-frame points and normals on the world grid (see `encode_frame`)."""
-    points_w, normals_w = _points_and_normals(points_w, normals_w)
-    c, n, k = pool_cells(points_w, normals_w, voxel_size, cells_per_voxel)
-    return encode_cells(prior, c, n, k, voxel_size, min_points, with_jacobian, capacity, hints)
-
-
-def encode_frame(prior, points, normals, pose, voxel_size: float, min_points: int = 10,
-                 with_jacobian: bool = True, cells_per_voxel: int = 1, hints: dict | None = None) -> LatentMap:
-    """The local map of one frame, on the world-aligned grid.
-
-    Args:
-      prior: a `jaxmap.imt.Prior` (`load_prior()`).
-      points: [N, 3] float32, sensor frame (downsampled to about voxel_size / 4 spacing, as the prior
-        was trained with up to 64 points per 2x2x2-voxel neighbourhood).
-      normals: [N, 3] float32 unit normals, sensor frame.
-      pose: [4, 4] T_world_sensor.
-      voxel_size: metres.
-      min_points: voxels fed by fewer points are dropped (weight 0).
-      with_jacobian: compute the translation Jacobians (needed by `transform`; exact, forward mode).
-      cells_per_voxel: points are pooled into cells of voxel_size / cells_per_voxel first (0 = none).
-      hints: {padded cell count: scratch-table size that sufficed}, kept by the caller across frames.
-    Returns:
-      A `LatentMap` in the world frame: each cell feeds the 8 voxels whose 2x cube contains it;
-      latent = count-weighted mean of the per-point encoder features, weight = number of points.
-    """
-    T_w_s = SE3.from_matrix(np.asarray(pose, np.float64))
-    pw = T_w_s.apply(np.asarray(points, np.float64)).astype(np.float32)
-    nw = T_w_s.rotation().apply(np.asarray(normals, np.float64)).astype(np.float32)
-    return encode_world(prior, pw, nw, voxel_size, min_points, with_jacobian, cells_per_voxel=cells_per_voxel,
-                        hints=hints)
-
-
-def encode_keyframes(prior, cells_w, normals_w, counts, slot, slots: int, voxel_size: float, min_points: int = 10,
-                     signs=None, n_pad: int | None = None, slots_pad: int | None = None,
-                     hints: dict | None = None) -> VoxelBatch:
-    """The local maps of several keyframes, in one encode (no Jacobians).
-
-    cells_w, normals_w: [N, 3] world-frame pooled cells of all keyframes; counts [N]; slot [N] int32 in
-    [0, slots): which keyframe each cell belongs to. Voxels are pooled per slot (a slot's records are
-    what `encode_cells` gives for its cells alone), and `signs` ([slots], +1 / -1, or None = +1)
-    multiplies each slot's weights, so one batch can remove some contributions and add others (`fuse`
-    of a batch with negative weights removes them). Returns a `VoxelBatch` of (voxel, slot) records.
-    n_pad, slots_pad: padded cell and slot counts (default: `bucket`, and a power of two >= 8); callers
-    that want fewer compiled shapes pass coarser ones.
-    """
-    s_pad = slots_pad or 1 << max(3, math.ceil(math.log2(max(slots, 1))))
-    n_pad = n_pad or bucket(len(cells_w))
-    if n_pad < len(cells_w) or s_pad < slots:
-        raise ValueError(f"encode_keyframes: {len(cells_w)} cells / {slots} slots do not fit {n_pad} / {s_pad}")
-    slot_p = pad(slot, n_pad, np.int32)
-    coords, lat_sum, _, w, levels, _ = _encode_padded(
-        prior, pad(cells_w, n_pad, np.float32), pad(normals_w, n_pad, np.float32), pad(counts, n_pad, np.float32),
-        slot_p, voxel_size, min_points, False, hints=hints)
-    sg = np.ones(s_pad, np.float32)
-    sg[:slots] = 1.0 if signs is None else signs
-    return _signed_batch(coords, lat_sum, w, levels, jnp.asarray(sg))
-
-
 def mean_of(sums: jax.Array, w: jax.Array) -> jax.Array:
     """Per-row means `sums [R, ...] / w [R]`, 0 where the weight is below FREE_WEIGHT (traceable)."""
     return sums * _inv_weight(w).reshape((-1,) + (1,) * (sums.ndim - 1))
 
 
-def signed_batch(coords, lat_sum, w, levels, signs) -> VoxelBatch:
-    """(voxel, slot) sums -> a VoxelBatch of means whose weights carry the slot's sign (traceable)."""
+def signed_batch(coords, lat_sum, w, levels, signs, jac_sum=None) -> VoxelBatch:
+    """(voxel, slot) sums -> a VoxelBatch of means whose weights carry the slot's sign (traceable); with
+    the Jacobians' sums, their means too."""
     mean = lat_sum * _inv_weight(w)[:, None, None]
+    jac = None if jac_sum is None else mean_of(jac_sum, w)
     w = w * signs[jnp.maximum(levels, 0)]
-    return VoxelBatch(coords, mean, None, w, w != 0)
-
-
-_signed_batch = jax.jit(signed_batch)
+    return VoxelBatch(coords, mean, jac, w, w != 0)

@@ -18,7 +18,7 @@ accumulate over successive loop closures: ten remaps end where one remap to the 
 with the 3x4 world-frame motion `D = T pose_encoded^-1` of its keyframe, whether that motion is the
 identity (`exact`: the voxel is fused as stored, without a splat) and the sign (+1 fuse, -1 remove).
 Size: 4 + 12 + 2 x 18 x 3 + 2 x 18 x 9 = 448 bytes a voxel (about 2 MB for a 320x240 room keyframe
-of 4.4k voxels), 40x the pooled cells of `remap.KeyframeStore` (`jaxmap bench imt` prints both).
+of 4.4k voxels), 40x the pooled cells of `keyframe_store.KeyframeStore` (`jaxmap bench imt` prints both).
 """
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxmap.errors import DataError
-from jaxmap.imt.remap import PosedStore, frozen
+from jaxmap.imt.keyframe_store import PosedStore, frozen
 
 COMPACT = np.float16     # latents and Jacobians of the store (|rel. error| <= 2^-11; the map fuses these values)
 

@@ -16,6 +16,7 @@ done ahead, in the frame loop's prefetch threads (`jaxmap.runs.imt.prepare_frame
 from __future__ import annotations
 
 import os
+import threading
 import time
 from typing import NamedTuple
 
@@ -31,11 +32,31 @@ from jaxmap.geometry import SE3, validate_pose
 from jaxmap.grid.hashing import HashTable
 from jaxmap.imt import core
 from jaxmap.imt import latent_map as lm
+from jaxmap.imt.local_maps import encode_frame
 from jaxmap.imt.meshing import mesh as mesh_map
 from jaxmap.imt.meshing import query
 from jaxmap.imt.prior import load_prior
-from jaxmap.imt.remap import RemapOptions
+from jaxmap.imt.keyframe_store import RemapOptions
 from jaxmap.preprocess import preprocess_scan
+from jaxmap.snapshot import copy_arrays
+
+
+_PENDING: list = []  # the one background save in flight: [thread, error or None]
+
+
+def saving() -> bool:
+    """Is a background save (`ImtMapper.save(..., background=True)`) still being written?"""
+    return any(t.is_alive() for t, _ in _PENDING)
+
+
+def wait_for_saves() -> None:
+    """Block until the background save (if any) is written; re-raise its error."""
+    while _PENDING:
+        thread, _ = _PENDING[0]
+        thread.join()
+        _, err = _PENDING.pop(0)
+        if err is not None:
+            raise err
 
 
 class HostScan(NamedTuple):
@@ -68,6 +89,7 @@ class ImtMapper:
         # ("compiled", map capacity, padded cell count) -> the step shapes run; "frame_pad" -> the frames' pad;
         # ("move_step", map capacity) -> move_step ran (transform); "remap_group_cells" -> cells a remap batch holds
         self.hints: dict = {}
+        self.local_hints: dict = {}   # the same for `encode`'s local maps (other programs than the map's)
         self.timings: list[dict] = []
         self.remaps: list[dict] = []
 
@@ -107,11 +129,11 @@ class ImtMapper:
         transformed local map is compared with one pooled on another grid, and one cell per voxel doubles
         that difference (two-branch test 0.78 cm against 0.41 cm at 2 and 0.39 cm unpooled, `jaxmap bench
         imt`). The map's own path (`add_frame`, `remap`) re-encodes the same stored cells, so it keeps the
-        coarser, 4x cheaper `map.cells_per_voxel`."""
+        coarser, 4x cheaper `map.cells_per_voxel`. The frame program encodes it (`local_maps.encode_frame`)."""
         c = self.cfg.map
         cpv = c.transform_cells_per_voxel if with_jacobian else c.cells_per_voxel
-        return lm.encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
-                               with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.hints)
+        return encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
+                            with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.local_hints)
 
     def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None,
                   prepared: HostScan | None = None) -> dict:
@@ -166,9 +188,13 @@ class ImtMapper:
 
     def live_mesh(self) -> dict:
         """`attach_viewer` arguments for a live view: the mesh at half the lattice resolution (a preview;
-        the final mesh is the full one), made in a background thread."""
+        the final mesh is the full one), made in a background thread from a copy of the map taken between
+        frames (the next frame's step donates the map's buffers)."""
         res = max(2, (self.cfg.mesh.resolution // 2) // 2 * 2)
-        return {"mesh_fn": lambda: self.mesh(resolution=res)}
+        c = self.cfg.mesh
+        return {"snapshot_fn": lambda: copy_arrays(self.map),
+                "mesh_fn": lambda m: mesh_map(self.prior, m, res, c.sigma_threshold_m, c.min_weight,
+                                              c.min_component_faces)}
 
     def keyframe_poses(self) -> np.ndarray:
         return self.store.poses()
@@ -179,14 +205,35 @@ class ImtMapper:
                 "keyframes": len(self.store)}
 
     # -- checkpoints --
-    def save(self, path: str) -> None:
-        """Write the map, the keyframe store and the config to directory `path` (atomically)."""
+    def save(self, path: str, background: bool = False, copy: bool = True) -> None:
+        """Write the map, the keyframe store and the config to directory `path` (atomically). `background`:
+        written in a thread (`saving`, `wait_for_saves`), from a copy of the map taken on the device (the
+        next frames map meanwhile: their steps donate the map's buffers), or with copy=False from the map
+        itself: then nothing may change the map until the save is written (the end of a run, while it is
+        meshed). The keyframe store is immutable, so the thread reads it as it is now."""
         meta = {"config": to_dict(self.cfg), "table_capacity": int(self.map.table.capacity),
-                "keyframes": len(self.store), "timings": self.timings, "remaps": self.remaps}
-        save_tree(path, {"map": self.map, "store": self.store.to_arrays()}, meta)
+                "keyframes": len(self.store), "timings": list(self.timings), "remaps": list(self.remaps)}
+        if not background:
+            wait_for_saves()
+            save_tree(path, {"map": self.map, "store": self.store.to_arrays()}, meta)
+            return
+        wait_for_saves()
+        m, store = copy_arrays(self.map) if copy else self.map, self.store
+        slot = [None, None]
+
+        def work():
+            try:
+                save_tree(path, {"map": m, "store": store.to_arrays()}, meta)
+            except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
+                slot[1] = e
+
+        slot[0] = threading.Thread(target=work, name="jaxmap-imt-checkpoint", daemon=True)
+        slot[0].start()
+        _PENDING.append(slot)
 
     @classmethod
     def load(cls, path: str, prior=None) -> "ImtMapper":
+        wait_for_saves()
         path, meta = read_meta(path, "jaxmap imt")
         cfg = from_dict(ImtConfig, meta["config"], source=os.path.join(path, "meta.json"))
         m = cls(cfg, prior)

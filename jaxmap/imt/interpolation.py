@@ -1,4 +1,5 @@
-"""SE(3) transform of a latent map onto the global grid (IMT paper section III-B, eqs. 3-10).
+"""SE(3) transform of a latent map onto the global grid (IMT paper section III-B, eqs. 3-10): the
+interpolation of moved voxels (`transform_batch`, `splat_trilinear`); `local_maps.transform` fuses them.
 
 A local map `L` (voxel centres `c_m`, latents `F_m`, Jacobians `J_m`, weights `w_m`, all in frame A)
 and a pose `T = [R | t]` from frame A to the global frame. Then, per local voxel:
@@ -39,7 +40,7 @@ import numpy as np
 from jaxmap.geometry import einsum, matmul
 from jaxmap.grid import hashing
 from jaxmap.grid.features import CORNER_OFFSETS
-from jaxmap.imt.latent_map import LatentMap, VoxelBatch, voxel_keys, empty, fuse
+from jaxmap.imt.latent_map import LatentMap, VoxelBatch, voxel_keys
 from jaxmap.imt.vn import rotate
 
 METHODS = ("trilinear", "softmax")
@@ -56,7 +57,7 @@ def splat_trilinear(b: VoxelBatch, T: jax.Array, voxel_size: float, jacobian_sig
     first-order expansions are the most accurate (power 2 lowers the two-branch error by 20-40 %
     against plain trilinear weights, `jaxmap bench imt`).
 
-    b: [P] entries -> [8P] entries on the global grid (fuse them, or aggregate with `transform`).
+    b: [P] entries -> [8P] entries on the global grid (fuse them: `local_maps.transform` / `core.move_step`).
     `T` may also be [P, 4, 4] (one pose per entry: many keyframes at once). The rotation of the latents
     and Jacobians is `vn.rotate` of the batch itself (its fields are marked), mapped over the entries.
     keep_jacobian: give each splat the rotated Jacobian too (for a map that will be transformed again).
@@ -139,28 +140,11 @@ def _softmax_core(m: LatentMap, T: jax.Array, temperature, jacobian_sign: float,
     return VoxelBatch(cand, latent, jacn, jnp.where(keep, w, 0.0), keep), overflow
 
 
-def transform(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: float = -1.0,
-              temperature: float = 1.0, k: int = 8, splat_power: float = 2.0) -> LatentMap:
-    """The map `m` moved by `T` ([4, 4], m's frame -> global) and interpolated onto the global grid.
-
-    method: "trilinear" (splat, weight-conserving) or "softmax" (paper eq. 9-10, K nearest).
-    jacobian_sign: -1 (correct first-order term), +1 (paper eq. 5/9), 0 (no Jacobian term).
-    temperature: softmax temperature in voxel units^2 (paper: 1 / voxel_size^2).
-    splat_power: trilinear only, see `splat_trilinear` (1 = plain trilinear weights).
-    Returns a new `LatentMap` on the global grid (same voxel size).
-    """
-    keep = m.jac_sum is not None
-    b = transform_batch(m, T, method=method, jacobian_sign=jacobian_sign, temperature=temperature, k=k,
-                        splat_power=splat_power, keep_jacobian=keep)
-    # Splats reach ~2x as many voxels as the map has; start there so the table grows at most once.
-    cap = 1 << max(10, int(np.ceil(np.log2(4 * max(m.num_active(), 1)))))
-    return fuse(empty(m.voxel_size, capacity=cap, channels=m.channels, with_jacobian=keep), b, log=False)
-
-
 def transform_batch(m: LatentMap, T, *, method: str = "trilinear", jacobian_sign: float = -1.0,
                     temperature: float = 1.0, k: int = 8, splat_power: float = 2.0,
                     keep_jacobian: bool = False) -> VoxelBatch:
-    """Like `transform`, but returns the global-grid contribution as a `VoxelBatch` to `fuse`/`remove`
+    """The map `m` moved by `T` ([4, 4], m's frame -> global), interpolated onto the global grid, as a
+    `VoxelBatch` to fuse / remove (`local_maps.transform` fuses it into an empty map; same arguments)
     (with Jacobians only if `keep_jacobian`). `m` must carry Jacobians unless jacobian_sign is 0."""
     if method not in METHODS:
         raise ValueError(f"unknown interpolation method {method!r}; choose one of {METHODS}")

@@ -33,7 +33,6 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import SE3, pose_change
-from jaxmap.imt.latent_map import encode_keyframes
 
 
 def frozen(x: np.ndarray) -> np.ndarray:
@@ -154,9 +153,3 @@ def moved_keyframes(store: KeyframeStore, new_poses, opts: RemapOptions) -> list
         return []
     ang, trans = pose_change(store.poses(), np.asarray(new_poses, np.float64))
     return np.flatnonzero((ang > np.deg2rad(opts.min_rotation_deg)) | (trans > opts.min_translation_m)).tolist()
-
-
-def contributions(prior, store: KeyframeStore, ids, poses, voxel_size: float, min_points: int = 10, signs=None):
-    """The global-grid contributions of keyframes `ids` at `poses` (a `VoxelBatch`, weights times `signs`)."""
-    pts, nrm, cnt, slot = store.cells_at(ids, poses)
-    return encode_keyframes(prior, pts, nrm, cnt, slot, len(ids), voxel_size, min_points, signs)
