@@ -19,7 +19,8 @@ one is missing, truncated or altered, it warns and falls back to the previous ch
 checkpoint at all is a `NoCheckpointError`, only damaged ones a `CheckpointError` naming each one's
 fault. A directory written by jaxmap <= 0.1 (`state/` + `meta.json` directly in it, no manifest) is
 still read, unchecked. The mappers' own modules (`jaxmap.n3.checkpoint`, the IMT mapper) build on
-`save_tree` / `load` / `read_meta` / `read_tree`; this module imports none of them.
+`save_tree` / `load` / `read_meta` / `read_tree`; this module imports none of them. A save written in
+a background thread, while the next frames map, goes through `SAVES` (`BackgroundSaves`: one at a time).
 """
 from __future__ import annotations
 
@@ -30,6 +31,7 @@ import json
 import logging
 import os
 import shutil
+import threading
 from typing import Callable, Iterable, TypeVar
 
 import jax
@@ -314,3 +316,43 @@ def named_leaves(tree) -> list[tuple[str, object]]:
     callables are leaves (functions that fetch a leaf when it is written, see `save_arrays`)."""
     flat, _ = jax.tree_util.tree_flatten_with_path(tree, is_leaf=callable)
     return [("/".join(str(k.key) for k in path), x) for path, x in flat]
+
+
+class BackgroundSaves:
+    """The checkpoint being written in a background thread, at most one at a time (a save waits for the one
+    before), and the error it raised, re-raised in the thread that waits for it. One per process (`SAVES`):
+    both maps' background saves (`jaxmap.n3.checkpoint.save_state_async`, `ImtMapper.save`) go through it."""
+
+    def __init__(self):
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def start(self, work) -> None:
+        """Run `work()` in a background thread, once the save before it is written."""
+        self.wait()
+
+        def run():
+            try:
+                work()
+            except BaseException as e:  # noqa: BLE001 - re-raised by wait() in the caller's thread
+                self._error = e
+
+        self._thread = threading.Thread(target=run, name="jaxmap-checkpoint", daemon=True)
+        self._thread.start()
+
+    def busy(self) -> bool:
+        """Is a save still being written?"""
+        return self._thread is not None and self._thread.is_alive()
+
+    def wait(self) -> None:
+        """Block until the save (if any) is written; re-raise its error (once)."""
+        if self._thread is None:
+            return
+        self._thread.join()
+        err, self._thread, self._error = self._error, None, None
+        if err is not None:
+            raise err
+
+
+# This process's background checkpoint writes (either map's): the one mutable state of this module.
+SAVES = BackgroundSaves()

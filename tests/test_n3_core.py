@@ -513,11 +513,11 @@ def test_compact_checkpoint_restores_the_state_leaf_for_leaf(tmp_path):
 
 
 def test_a_background_save_runs_one_at_a_time_and_its_error_reaches_the_waiting_thread():
-    """`checkpoint.BackgroundSaves`: busy while the write runs, a second save starts once the first is
+    """`jaxmap.checkpoint.BackgroundSaves`: busy while the write runs, a second save starts once the first is
     written, the write's error is raised by `wait` in the caller's thread, once."""
     import threading
 
-    from jaxmap.n3.checkpoint import BackgroundSaves
+    from jaxmap.checkpoint import BackgroundSaves
 
     saves, gate, order = BackgroundSaves(), threading.Event(), []
 

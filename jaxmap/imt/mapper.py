@@ -2,6 +2,7 @@
 
     mapper = ImtMapper(cfg)                   # cfg: jaxmap.config.ImtConfig
     mapper.add_frame(points_s, pose)          # [N,3] sensor frame, [4,4] T_world_sensor
+    mapper.add_prepared(mapper.prepare(points_s), pose)   # the host's part made ahead (a prefetch thread)
     mapper.remap(new_keyframe_poses)          # [K,4,4] after a pose-graph update
     mapper.mesh(); mapper.sdf(points_w); mapper.save(dir); ImtMapper.load(dir)
 
@@ -11,12 +12,12 @@ changed) and the encode capacities that sufficed so far (`mapper.hints`). Every 
 preprocessed (crop, downsample to about voxel/4, PCA normals towards the sensor) and pooled into
 cells on the world grid at its pose on the host, then kept as a keyframe and encoded and fused by
 one compiled program (`core.integrate`), whose stats are read once. The host's part (`prepare`) can be
-done ahead, in the frame loop's prefetch threads (`jaxmap.runs.imt.prepare_frame`).
+done ahead, in the frame loop's prefetch threads (`jaxmap.runs.imt.prepare_frame`), and the frame added
+with `add_prepared`.
 """
 from __future__ import annotations
 
 import os
-import threading
 import time
 from typing import NamedTuple
 
@@ -24,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmap.checkpoint import read_meta, read_tree, save_tree
+from jaxmap.checkpoint import SAVES, read_meta, read_tree, save_tree
 from jaxmap.config import ImtConfig, from_dict, to_dict
 from jaxmap.errors import DataError
 from jaxmap.records import medians
@@ -41,22 +42,14 @@ from jaxmap.preprocess import preprocess_scan
 from jaxmap.snapshot import copy_arrays
 
 
-_PENDING: list = []  # the one background save in flight: [thread, error or None]
-
-
 def saving() -> bool:
     """Is a background save (`ImtMapper.save(..., background=True)`) still being written?"""
-    return any(t.is_alive() for t, _ in _PENDING)
+    return SAVES.busy()
 
 
 def wait_for_saves() -> None:
     """Block until the background save (if any) is written; re-raise its error."""
-    while _PENDING:
-        thread, _ = _PENDING[0]
-        thread.join()
-        _, err = _PENDING.pop(0)
-        if err is not None:
-            raise err
+    SAVES.wait()
 
 
 class HostScan(NamedTuple):
@@ -135,18 +128,21 @@ class ImtMapper:
         return encode_frame(self.prior, points_s, normals_s, pose, c.voxel_size_m, c.min_points,
                             with_jacobian=with_jacobian, cells_per_voxel=cpv, hints=self.local_hints)
 
-    def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None,
-                  prepared: HostScan | None = None) -> dict:
-        """Encode, fuse and keep a frame. Returns its timings (s) and sizes: `preprocess_s` the host's
-        preprocessing (its time in the prefetch thread when `prepared`), `encode_s` the host's pooling
+    def add_frame(self, points_s, pose, frame: int | None = None, pose_source: str | None = None) -> dict:
+        """Encode, fuse and keep a frame: points_s [N, 3] sensor frame, pose [4, 4] T_world_sensor. Returns
+        its timings (s) and sizes: `preprocess_s` the host's preprocessing, `encode_s` the host's pooling
         and the frame program (encode and fuse, one program), `fuse_s` what follows it on the host.
 
         pose_source: where the pose came from, named by the error when it is not a rigid transform
-        (None: the user's pose file, and the error says how to fix it). prepared: `prepare(points_s)`
-        made ahead (then `points_s` is not read), with the cells when made at this pose."""
+        (None: the user's pose file, and the error says how to fix it)."""
+        return self.add_prepared(self.prepare(points_s), pose, frame, pose_source)
+
+    def add_prepared(self, prepared: HostScan, pose, frame: int | None = None, pose_source: str | None = None) -> dict:
+        """`add_frame` of a scan made ready ahead (`prepare(points_s)`, e.g. in the frame loop's prefetch
+        thread; with its cells when made at this pose); `preprocess_s` is then its time there."""
         pose = np.asarray(pose, np.float64)
         validate_pose(pose, f"pose of frame {frame if frame is not None else len(self.store)}", source=pose_source)
-        pts, nrm, cells, prep_s = self.prepare(points_s) if prepared is None else prepared
+        pts, nrm, cells, prep_s = prepared
         t1 = time.perf_counter()
         if cells is None:
             cells = self._pool(pts, nrm, pose)
@@ -217,19 +213,9 @@ class ImtMapper:
             wait_for_saves()
             save_tree(path, {"map": self.map, "store": self.store.to_arrays()}, meta)
             return
-        wait_for_saves()
+        wait_for_saves()  # (before the copy: the copy is then the only extra map in memory)
         m, store = copy_arrays(self.map) if copy else self.map, self.store
-        slot = [None, None]
-
-        def work():
-            try:
-                save_tree(path, {"map": m, "store": store.to_arrays()}, meta)
-            except BaseException as e:  # noqa: BLE001 - re-raised by wait_for_saves in the caller's thread
-                slot[1] = e
-
-        slot[0] = threading.Thread(target=work, name="jaxmap-imt-checkpoint", daemon=True)
-        slot[0].start()
-        _PENDING.append(slot)
+        SAVES.start(lambda: save_tree(path, {"map": m, "store": store.to_arrays()}, meta))
 
     @classmethod
     def load(cls, path: str, prior=None) -> "ImtMapper":

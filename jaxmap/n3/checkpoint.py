@@ -25,14 +25,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
-import threading
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxmap.checkpoint import host_array, load, named_leaves, read_tree, save_arrays
+from jaxmap.checkpoint import SAVES, host_array, load, named_leaves, read_tree, save_arrays
 from jaxmap.config import ConfigError, MapConfig, from_dict, to_dict
 from jaxmap.errors import CheckpointError
 from jaxmap.grid import hashing
@@ -183,45 +182,6 @@ def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list,
 
 def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> None:
     save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings, extra), step=int(state.frame))
-
-
-class BackgroundSaves:
-    """The checkpoint being written in a background thread, at most one at a time (`save_state_async`
-    waits for the one before), and the error it raised, re-raised in the thread that waits for it."""
-
-    def __init__(self):
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
-
-    def start(self, work) -> None:
-        """Run `work()` in a background thread, once the save before it is written."""
-        self.wait()
-
-        def run():
-            try:
-                work()
-            except BaseException as e:  # noqa: BLE001 - re-raised by wait() in the caller's thread
-                self._error = e
-
-        self._thread = threading.Thread(target=run, name="jaxmap-checkpoint", daemon=True)
-        self._thread.start()
-
-    def busy(self) -> bool:
-        """Is a save still being written?"""
-        return self._thread is not None and self._thread.is_alive()
-
-    def wait(self) -> None:
-        """Block until the save (if any) is written; re-raise its error (once)."""
-        if self._thread is None:
-            return
-        self._thread.join()
-        err, self._thread, self._error = self._error, None, None
-        if err is not None:
-            raise err
-
-
-# This process's background checkpoint writes: the one mutable state of this module.
-SAVES = BackgroundSaves()
 
 
 # A copy of the whole state on the device, one program (leaf by leaf, the copies compiled one small

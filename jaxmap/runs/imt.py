@@ -37,7 +37,7 @@ def prepare_frame(mapper: ImtMapper, poses, seq, i: int) -> Frame:
 
 def fuse_frame(mapper: ImtMapper, frame: Frame) -> tuple[dict, np.ndarray]:
     """The transformable map's step of the frame loop: the prepared frame fused at its pose."""
-    return mapper.add_frame(None, frame.pose, frame=frame.index, prepared=frame.batch), frame.pose
+    return mapper.add_prepared(frame.batch, frame.pose, frame=frame.index), frame.pose
 
 
 def fuse_sequence(mapper: ImtMapper, seq, poses=None, progress: bool = True, desc: str = "imt", viewer=None,

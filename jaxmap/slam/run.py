@@ -71,8 +71,8 @@ class FrontEndStep:
             rel = r.odometry_rel if r.odometry_rel is not None else self.fe.odometry.velocity
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], rel))
             if r.is_keyframe:
-                mapper.add_frame(frame.points, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end",
-                                 prepared=frame.prepared)
+                ready = frame.prepared if frame.prepared is not None else mapper.prepare(frame.points)
+                mapper.add_prepared(ready, r.pose, frame=frame.index, pose_source="jaxmap's SLAM front end")
                 if r.optimized:
                     self.loops.append(_close_loop(self.cfg, mapper, r.keyframe_poses, self.out_dir, len(self.loops),
                                                   {"frame": frame.index, "keyframe": int(r.keyframe_id),
@@ -193,7 +193,7 @@ class SnapshotStep:
         while self.applied == 0 or len(self.snapshots[self.applied - 1][1]) <= k:
             self._apply(self.applied)
         pose = self.snapshots[self.applied - 1][1][k]
-        return self.mapper.add_frame(frame.points, pose, frame=frame.index, prepared=frame.prepared), pose
+        return self.mapper.add_prepared(frame.prepared, pose, frame=frame.index), pose
 
 
 def prepare_snapshot_frame(mapper, seq, i: int) -> SlamFrame:
