@@ -224,12 +224,13 @@ def _view_args(sub) -> None:
 
 def _bench_args(sub) -> None:
     p = sub.add_parser("bench", help="benchmarks: speed, memory and quality against baselines")
-    p.add_argument("suite", choices=["n3", "imt", "slam", "commands"],
+    p.add_argument("suite", choices=["n3", "imt", "slam", "commands", "path"],
                    help="commands: what a user waits for, every command (jaxmap map cold and warm with host and "
-                        "device preprocessing, jaxmap imt, jaxmap slam)")
+                        "device preprocessing, jaxmap imt, jaxmap slam); path: the way one scan (--frames K, "
+                        "default 3) takes through jaxmap map to the frame program (modules, moves between them)")
     p.add_argument("--data", default=None,
                    help="where the benchmark scene is, made if missing "
-                        "(n3 and commands: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
+                        "(n3, commands and path: data/city_bench, imt: data/room_bench, slam: data/room_noisy)")
     p.add_argument("--out", default=None, help="output directory (default runs/bench_SUITE)")
     p.add_argument("--frames", type=int, default=None)
     p.add_argument("--only", default=None, help="comma-separated subset of variants")

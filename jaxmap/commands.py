@@ -367,12 +367,13 @@ def view(args) -> int:
     return view_run(args.run, port=args.port, wait=not args.no_wait)
 
 
-BENCH_DATA = {"slam": "data/room_noisy", "imt": "data/room_bench", "n3": "data/city_bench", "commands": "data/city_bench"}
+BENCH_DATA = {"slam": "data/room_noisy", "imt": "data/room_bench", "n3": "data/city_bench", "commands": "data/city_bench",
+              "path": "data/city_bench"}
 
 
 def bench(args) -> int:
-    """`jaxmap bench {n3,imt,slam,commands}`: benchmarks (speed, memory, quality against baselines; commands:
-    the whole-run cost of every command, `jaxmap.bench.commands`)."""
+    """`jaxmap bench {n3,imt,slam,commands,path}`: benchmarks (speed, memory, quality against baselines; commands:
+    the whole-run cost of every command, `jaxmap.bench.commands`; path: a scan's way through `jaxmap map`)."""
     import importlib
 
     args.out = args.out or f"runs/bench_{args.suite}"
