@@ -1,8 +1,8 @@
 """What a run keeps of each frame: the records its map returns (one dict per frame, in `timings`), and
 their medians (timing.json's summary).
 
-The records' keys are typed in the maps' own modules (`jaxmap.n3.mapper.N3Record`,
-`jaxmap.imt.mapper.ImtRecord`); here only what every run does with them."""
+An N3 map's record is typed in its own module (`jaxmap.n3.mapper.N3Record`); here only what every run
+does with the records."""
 from __future__ import annotations
 
 from typing import Iterable

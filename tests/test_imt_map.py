@@ -507,6 +507,7 @@ def test_a_background_save_equals_a_foreground_save_and_the_map_goes_on_meanwhil
 
     from jaxmap.config import ImtConfig, load_config
     from jaxmap.frame_loop import open_run_sequence
+    from jaxmap.checkpoint import SAVES
     from jaxmap.imt import mapper as mp
 
     cfg = load_config("room_imt", [f"data.path={small_room}", "data.end_frame=4", "data.every_frame=1"], ImtConfig)
@@ -520,13 +521,13 @@ def test_a_background_save_equals_a_foreground_save_and_the_map_goes_on_meanwhil
     monkeypatch.setattr(mp, "save_tree", lambda *a, **k: (go.wait(120), real(*a, **k))[1])
     saved = mapper.map
     mapper.save(str(tmp_path / "bg"), background=True)
-    assert mp.saving()
+    assert SAVES.busy()
     fr = seq.frame(3)
     mapper.add_frame(fr.points, fr.pose)                     # maps while the save waits
-    assert saved.weight.is_deleted() and mp.saving()
+    assert saved.weight.is_deleted() and SAVES.busy()
     go.set()
-    mp.wait_for_saves()
-    assert not mp.saving()
+    SAVES.wait()
+    assert not SAVES.busy()
     fg, bg = mp.ImtMapper.load(str(tmp_path / "fg")), mp.ImtMapper.load(str(tmp_path / "bg"))
     assert len(bg.store) == 3 and len(mapper.store) == 4 and bg.timings == fg.timings
     for a, b in zip(jax.tree_util.tree_leaves(fg.map), jax.tree_util.tree_leaves(bg.map)):

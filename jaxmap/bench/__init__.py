@@ -17,6 +17,16 @@ def in_subprocess(argv: list[str], cache_dir: str, module: str = "jaxmap.cli") -
     return res, time.perf_counter() - t0
 
 
+def default_city(data: str) -> None:
+    """The default city (`jaxmap synth city`, seed 0, 130 frames) in directory `data`, synthesized when it is
+    not there (the scene of `jaxmap bench n3` and `jaxmap bench path`)."""
+    if not os.path.isfile(os.path.join(data, "poses.txt")):
+        from jaxmap.synth.city import generate_city
+
+        print(f"[bench] synthesizing the default city into {data}")
+        generate_city(data, seed=0)
+
+
 def base_overrides(args, data: str, output: str | None = None) -> list[str]:
     """Config overrides every bench starts from: the scene directory, the output directory (if
     given), the user's `--set`s, and `--frames` as data.end_frame."""

@@ -101,8 +101,7 @@ def print_speed(rows: dict) -> None:
 
 
 def main(args) -> int:
-    from jaxmap.bench import base_overrides
-    from jaxmap.synth.city import generate_city
+    from jaxmap.bench import base_overrides, default_city
 
     if getattr(args, "long", False):
         return main_long(args)
@@ -112,9 +111,7 @@ def main(args) -> int:
         return main_suite(args, VARIANTS, map_in_subprocess)
     data, out = args.data, args.out
     os.makedirs(out, exist_ok=True)
-    if not os.path.isfile(os.path.join(data, "poses.txt")):
-        print(f"[bench] synthesizing the default city into {data}")
-        generate_city(data, seed=0)
+    default_city(data)
     base = base_overrides(args, data)[1:]  # the data path goes on the command line
     names = _variant_names(args.only)
     if names == ["memory"]:

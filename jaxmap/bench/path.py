@@ -89,14 +89,12 @@ def summary(calls: list[tuple]) -> dict:
 
 
 def main(args) -> int:
+    from jaxmap.bench import default_city
     from jaxmap.cli import main as cli_main
-    from jaxmap.synth.city import generate_city
 
     k = args.frames if args.frames is not None else 3
     os.makedirs(args.out, exist_ok=True)
-    if not os.path.isfile(os.path.join(args.data, "poses.txt")):
-        print(f"[bench] synthesizing the default city into {args.data}")
-        generate_city(args.data, seed=0)
+    default_city(args.data)
     trace = ScanTrace(k)
     sys.setprofile(trace)
     threading.setprofile(trace)

@@ -42,16 +42,6 @@ from jaxmap.preprocess import preprocess_scan
 from jaxmap.snapshot import copy_arrays
 
 
-def saving() -> bool:
-    """Is a background save (`ImtMapper.save(..., background=True)`) still being written?"""
-    return SAVES.busy()
-
-
-def wait_for_saves() -> None:
-    """Block until the background save (if any) is written; re-raise its error."""
-    SAVES.wait()
-
-
 class HostScan(NamedTuple):
     """A scan as `ImtMapper.prepare` leaves it for the frame program."""
 
@@ -203,23 +193,23 @@ class ImtMapper:
     # -- checkpoints --
     def save(self, path: str, background: bool = False, copy: bool = True) -> None:
         """Write the map, the keyframe store and the config to directory `path` (atomically). `background`:
-        written in a thread (`saving`, `wait_for_saves`), from a copy of the map taken on the device (the
+        written in a thread (`jaxmap.checkpoint.SAVES`: `busy`, `wait`), from a copy of the map taken on the device (the
         next frames map meanwhile: their steps donate the map's buffers), or with copy=False from the map
         itself: then nothing may change the map until the save is written (the end of a run, while it is
         meshed). The keyframe store is immutable, so the thread reads it as it is now."""
         meta = {"config": to_dict(self.cfg), "table_capacity": int(self.map.table.capacity),
                 "keyframes": len(self.store), "timings": list(self.timings), "remaps": list(self.remaps)}
         if not background:
-            wait_for_saves()
+            SAVES.wait()
             save_tree(path, {"map": self.map, "store": self.store.to_arrays()}, meta)
             return
-        wait_for_saves()  # (before the copy: the copy is then the only extra map in memory)
+        SAVES.wait()  # (before the copy: the copy is then the only extra map in memory)
         m, store = copy_arrays(self.map) if copy else self.map, self.store
         SAVES.start(lambda: save_tree(path, {"map": m, "store": store.to_arrays()}, meta))
 
     @classmethod
     def load(cls, path: str, prior=None) -> "ImtMapper":
-        wait_for_saves()
+        SAVES.wait()
         path, meta = read_meta(path, "jaxmap imt")
         cfg = from_dict(ImtConfig, meta["config"], source=os.path.join(path, "meta.json"))
         m = cls(cfg, prior)

@@ -23,7 +23,8 @@ from jaxmap.config import ImtConfig, save_config
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import (Checkpoints, Frame, FramesRun, Prefetcher, Progress, open_run_sequence, open_viewer,
                                run_frames)
-from jaxmap.imt.mapper import ImtMapper, saving, wait_for_saves
+from jaxmap.checkpoint import SAVES
+from jaxmap.imt.mapper import ImtMapper
 
 
 def prepare_frame(mapper: ImtMapper, poses, seq, i: int) -> Frame:
@@ -70,6 +71,6 @@ def run_imt(cfg: ImtConfig, out_dir: str, progress: bool = True, evaluate: bool 
     ckpt = os.path.join(out_dir, "checkpoint")
     # the last checkpoint is written in the background while the map is meshed (nothing changes the map then)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
-                        busy=saving, wait=wait_for_saves, final=lambda: mapper.save(ckpt, background=True, copy=False))
+                        busy=SAVES.busy, wait=SAVES.wait, final=lambda: mapper.save(ckpt, background=True, copy=False))
     loop = fuse_sequence(mapper, seq, progress=progress, viewer=viewer, checkpoints=saves, t_start=t_start)
-    return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, viewer=viewer, wait_saves=wait_for_saves)
+    return finish_run(mapper, cfg, out_dir, loop, evaluate=evaluate, viewer=viewer, wait_saves=SAVES.wait)
