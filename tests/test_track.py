@@ -220,3 +220,70 @@ def test_localize_summary_names_the_lost_frames_and_the_error_of_the_localised_o
     assert lines[3] == "                   localised:  median 1.3 cm, p95 1.3 cm, max 1.3 cm", lines
     whole = summary_table({**m, "lost_frames": [], "localised": 20, "localised_fraction": 1.0})
     assert "lost" not in whole and "localised: " not in whole and "position error     median" in whole
+
+
+# ------------------------------------------------------------------------------------------------
+# A young map: tracking against the map of the first frames (what jaxmap slam does at every frame)
+# ------------------------------------------------------------------------------------------------
+
+GUESSES = {"true": (0.0, 0.0, 0.0), "1 cm high": (0.0, 0.0, 0.01), "1 cm low": (0.0, 0.0, -0.01),
+           "5 cm, 3 cm aside": (0.05, 0.03, 0.0)}
+
+
+@pytest.fixture(scope="module")
+def young_tracks(small_city):
+    """{(frames mapped k, rule): {guess: TrackResult of frame k}}: the small city's frames 0..k-1 mapped at
+    their true poses with the shipped city config, frame k tracked from each of GUESSES with jaxmap slam's
+    options (`default_tracker`'s: the rule "settled", n3_track_min_seen) and with the rule before it
+    ("every point": min_seen 0). min_valid_fraction 0.5: the scan's share inside the map is not what is
+    tested here."""
+    from jaxmap.config.slam import SlamConfig
+    from jaxmap.io import open_sequence
+
+    seq = open_sequence(str(small_city))
+    cfg = load_config("city", [f"data.path={small_city}", "preprocess.device=false"])
+    first = seq.frame(0)
+    m = N3Mapper(cfg, first_scan=(first.points, first.pose))
+    rules = {"settled": TrackOptions(min_valid_fraction=0.5, min_seen=SlamConfig().n3_track_min_seen),
+             "every point": TrackOptions(min_valid_fraction=0.5, min_seen=0)}
+    out = {}
+    for k in (1, 3):
+        while m.frames < k:
+            fr = seq.frame(m.frames)
+            m.add_frame(fr.points, fr.pose)
+        fr = seq.frame(k)
+        pts = m.start.prepare(fr.points, np.eye(4), k)[0].points
+        for rule, opts in rules.items():
+            out[k, rule] = {}
+            for name, off in GUESSES.items():
+                T0 = np.array(fr.pose, np.float64)
+                T0[:3, 3] += off
+                res = track_scan(m.static, m.state, pts, T0, opts)
+                out[k, rule][name] = (res, res.pose[2, 3] - fr.pose[2, 3])
+    return out
+
+
+def test_tracking_against_a_young_map_does_not_pull_the_pose_down(young_tracks):
+    """jaxmap slam tracks each scan against the map of the frames before it. A map of one frame fits that
+    frame's rings but not the road between them (there its field reads the true road 2-7 cm above its zero
+    set), so every point of the next scan pulled the pose down: from three of the four guesses frame 1
+    was tracked 1.2 cm low and adopted (measured: -1.18 and -1.23 cm; KISS-ICP's odometry puts it 0.3 cm
+    high), and the map built on it stayed low (a 30-frame street: the road mapped 2 cm low, C-L1 2.9x
+    the true-pose map's). With the points of voxels that pairs of at least two frames trained
+    (`n3_track_min_seen`):
+    - against the map of one frame nothing is settled, and no tracked pose is adopted (the odometry's is);
+    - against three frames every guess is adopted, within 0.5 cm of the true height (the noise-free
+      sensor's map is good to a few millimetres: measured -0.14 cm from each guess), and the four agree
+      within 0.2 cm; the rule before it ended 0 to -0.64 cm from the same guesses (a spread that shows the
+      solve stops wherever the biased field lets it)."""
+    for name, (res, dz) in young_tracks[1, "settled"].items():
+        assert not res.ok and res.settled_fraction == 0.0, (name, res)
+    heights = []
+    for name, (res, dz) in young_tracks[3, "settled"].items():
+        assert res.ok and res.settled_fraction > 0.5, (name, res)
+        assert abs(dz) < 0.005, (name, dz)
+        heights.append(dz)
+    assert np.ptp(heights) < 0.002, heights
+    # the rule before: from a map of one frame, poses pulled a centimetre down and adopted
+    pulled = [dz for res, dz in young_tracks[1, "every point"].values() if res.ok and dz < -0.008]
+    assert len(pulled) >= 2, young_tracks[1, "every point"]

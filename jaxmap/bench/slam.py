@@ -140,12 +140,14 @@ def n3_slam_against_references(cfg, out: str) -> dict:
 
     return {"frames": slam["frames"], "keyframes": slam["keyframes"], "loops": slam["loops"],
             "ate": {"odometry": slam.get("ate_odometry"), "slam": slam.get("ate_slam")},
+            "axes": {"odometry": slam.get("axes_odometry"), "slam": slam.get("axes_slam")},
             "recon": {"GT poses (jaxmap map)": gt.get("metrics", {}), "odometry poses": odo.get("metrics", {}),
                       "slam (online)": slam.get("metrics", {})},
             "s_per_frame": {"GT poses (jaxmap map)": per_frame(gt), "slam (online)": per_frame(slam)},
             "step": slam["step"], "tracked": [slam["tracked_ok"], slam["tracked_frames"]],
             "loop_map_s": slam["loop_map_s"], "load": [load, os.getloadavg()],
-            "config": {k: getattr(cfg, k) for k in ("n3_config", "n3_track", "n3_loop", "n3_loop_min_move_m")}}
+            "config": {k: getattr(cfg, k) for k in ("n3_config", "n3_track", "n3_track_min_seen", "n3_loop",
+                                                    "n3_loop_min_move_m")}}
 
 
 def _print_ate(ates: dict, rule: bool) -> None:
@@ -160,10 +162,37 @@ def _print_ate(ates: dict, rule: bool) -> None:
     print()
 
 
+def _print_axes(axes: dict) -> None:
+    """Per trajectory, what the ATE hides: height error (mean, min, max), horizontal RMSE, tilt error."""
+    print(f"{'trajectory (per axis)':22s} {'dz mean cm':>10s} {'dz min':>7s} {'dz max':>7s} {'xy RMSE cm':>10s} "
+          f"{'tilt mean deg':>13s} {'tilt max':>8s}")
+    for name, a in axes.items():
+        if a:
+            print(f"{name:22s} {100 * a['dz_mean_m']:+10.2f} {100 * a['dz_min_m']:+7.2f} {100 * a['dz_max_m']:+7.2f} "
+                  f"{100 * a['xy_rmse_m']:10.2f} {a['tilt_mean_deg']:13.3f} {a['tilt_max_deg']:8.3f}")
+    print()
+
+
+def _print_road(recon: dict) -> None:
+    """Per map, the mean signed error (cm) of its road and sidewalk (the standard protocol's per-class
+    signed error: negative = the surface lies below the ground truth's)."""
+    rows = {k: m["signed_error_cm"] for k, m in recon.items() if m and "signed_error_cm" in m}
+    if not rows:
+        return
+    print(f"{'map: signed error cm':30s} {'road':>7s} {'sidewalk':>9s}")
+    for name, se in rows.items():
+        print(f"{name:30s} {se.get('road', {}).get('mean_cm', float('nan')):+7.2f} "
+              f"{se.get('sidewalk', {}).get('mean_cm', float('nan')):+9.2f}")
+    print()
+
+
 def _print_n3(res: dict) -> None:
     print(f"\njaxmap slam (map_kind n3) on {res['frames']} frames, {res['config']}")
     _print_ate(res["ate"], rule=False)
+    if res.get("axes"):
+        _print_axes(res["axes"])
     print_map_table(res["recon"])
+    _print_road(res["recon"])
     r = res["recon"]
     if r["slam (online)"] and r["GT poses (jaxmap map)"]:
         print(f"slam / GT-pose C-L1 = {r['slam (online)']['chamfer_l1_cm'] / r['GT poses (jaxmap map)']['chamfer_l1_cm']:.3f}"

@@ -88,13 +88,13 @@ def prepare_slam_frame(cfg: SlamConfig, start: MapStart, seq, i: int) -> SlamFra
                      odometry_scan=Scan(raw, cfg.frontend.odometry))
 
 
-def default_tracker(min_valid_fraction: float):
+def default_tracker(cfg: SlamConfig):
     """fn(static, state, points_s, T_init) -> TrackResult: `jaxmap.slam.track.track_scan` with its
-    default options but `min_valid_fraction` (imported here: the tracker is only needed when `n3_track`
-    is on)."""
+    default options but the run's `n3_track_min_valid` and `n3_track_min_seen` (imported here: the
+    tracker is only needed when `n3_track` is on)."""
     from jaxmap.slam.track import TrackOptions, track_scan
 
-    opts = TrackOptions(min_valid_fraction=min_valid_fraction)
+    opts = TrackOptions(min_valid_fraction=cfg.n3_track_min_valid, min_seen=cfg.n3_track_min_seen)
     return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
 
 
@@ -163,7 +163,8 @@ class N3SlamStep:
             static, state, T = self.mapper.tracking_map(guess[:3, 3], min_frames=TRACK_MIN_FRAMES)
             r = self.track(static, state, points, np.linalg.inv(T) @ guess)
             self.tracks.append({"tracked": True, "ok": bool(r.ok), "valid_fraction": float(r.valid_fraction),
-                                "rms_m": float(r.rms_m), "iterations": int(r.iterations)})
+                                "rms_m": float(r.rms_m), "iterations": int(r.iterations),
+                                "settled_fraction": float(r.settled_fraction)})
             return T @ np.asarray(r.pose, np.float64) if r.ok else None
 
         return refine
@@ -281,7 +282,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     (`save_slam`; None: not saved). Returns the trajectory, the odometry alone, per-loop and per-frame
     tracking records, and the frame loop's `FramesRun`."""
     if track is None and cfg.n3_track:
-        track = default_tracker(cfg.n3_track_min_valid)
+        track = default_tracker(cfg)
     if step is None:
         step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
     step.mapper, step.track, step.viewer, step.last = mapper, track, viewer, len(seq) - 1

@@ -47,7 +47,7 @@ from jaxmap.n3.core import PROGRAMS
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.n3slam import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend, show_loop
 from jaxmap.slam.odometry_common import Scan
-from jaxmap.slam.trajectory import ate, read_pose_snapshot, write_kitti, write_trajectory
+from jaxmap.slam.trajectory import ate, axis_errors, read_pose_snapshot, write_kitti, write_trajectory
 
 log = logging.getLogger("jaxmap")
 
@@ -291,11 +291,11 @@ def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarra
     out = {}
     gt = np.asarray(seq.poses[:len(traj)], np.float64)  # = seq.frame(i).pose, without re-reading the points
     if evaluate:
-        out["ate_slam"] = ate(traj, gt)
+        out["ate_slam"], out["axes_slam"] = ate(traj, gt), axis_errors(traj, gt)
     if odometry is not None:
         write_kitti(os.path.join(out_dir, "odometry_kitti.txt"), odometry)
         if evaluate:
-            out["ate_odometry"] = ate(odometry, gt)
+            out["ate_odometry"], out["axes_odometry"] = ate(odometry, gt), axis_errors(odometry, gt)
     return out
 
 

@@ -20,6 +20,11 @@ guess a metre off along a street, or turned 15 degrees at a corner, has nothing 
 +-search_m, turns about the sensor's vertical within +-search_yaw_deg: a ground vehicle's uncertain
 directions), each judged by the robust cost of a subset of the points, then a second such grid as fine
 as the first one's spacing around the best (`search_stages`), in the same program.
+With `min_seen` > 1 (jaxmap slam's `n3_track_min_seen`) the solve weighs only the points whose leaf
+voxel holds training pairs of at least that many frames: a map of one frame fits that frame's own rings
+but not the road between them, where its field reads the true surface centimetres above its zero set, so
+its points pulled each pose down (1.2 cm from the first frame's map, docs/slam.md), and a map built at
+those poses stays low; a pose tracked on fewer than `min_settled_fraction` of the points is not ok.
 All iterations run in one jitted program
 (`lax.while_loop`, stopping early on a small step) on a fixed number of points (`max_points`: a
 scan is subsampled or padded to it), so the program compiles once per map shape.
@@ -41,6 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.geometry import einsum, matmul, orthonormalize
+from jaxmap.grid import hashing
+from jaxmap.grid.features import leaf_voxel
 from jaxmap.n3.query import query
 from jaxmap.n3.state import N3State, N3Static, origin_world
 
@@ -67,6 +74,9 @@ class TrackOptions:
     search_points: int = 512           # ... each judged on this many of the points
     search_kernel_m: float = 0.3       # ... by the Geman-McClure cost at this scale
     search_stages: int = 2             # ... then again around the best, the grid shrunk to its spacing
+    min_seen: int = 0                  # > 1: the solve weighs (and compares poses on) only the points whose leaf
+                                       # voxel holds pairs of at least this many frames (`track_program`)
+    min_settled_fraction: float = 0.5  # ... and ok needs at least this fraction of the points there
 
 
 class TrackResult(NamedTuple):
@@ -75,6 +85,7 @@ class TrackResult(NamedTuple):
     valid_fraction: float   # of the used points, inside allocated voxels at the final pose
     rms_m: float            # RMS SDF of those points at the final pose (each clipped at rms_clip_m)
     iterations: int         # LM iterations run
+    settled_fraction: float = 1.0  # of the used points, in voxels of at least `min_seen` frames at the final pose
 
 
 class Refined(NamedTuple):
@@ -86,6 +97,7 @@ class Refined(NamedTuple):
     rms_m: jax.Array
     iterations: jax.Array
     converged: jax.Array    # the last step was below step_tol_m (at the final kernel scale)
+    settled_fraction: jax.Array  # of the used points, inside the map where it is settled (sdf_fn's `settled`)
 
 
 def so3_exp(w):
@@ -114,23 +126,32 @@ def gm_cost(r, valid, mask, k):
 
 
 def _residuals(sdf_fn, points, R, t, grad: bool):
-    """(r [M], valid [M], d r / d x [M, 3] or None) at x = R p + t."""
+    """(r [M], valid [M], d r / d x [M, 3] or None, settled [M]) at x = R p + t (`_split`: what sdf_fn
+    says is settled, all points when it says nothing)."""
     x = matmul(points, R.T) + t
     if not grad:
-        r, valid = sdf_fn(x)
-        return jnp.where(jnp.isfinite(r), r, 0.0), valid & jnp.isfinite(r), None
-    r, vjp, valid = jax.vjp(sdf_fn, x, has_aux=True)
+        r, (valid, settled) = _split(sdf_fn(x))
+        return jnp.where(jnp.isfinite(r), r, 0.0), valid & jnp.isfinite(r), None, settled
+    r, vjp, aux = jax.vjp(lambda p: _split(sdf_fn(p)), x, has_aux=True)
+    valid, settled = aux
     (g,) = vjp(jnp.ones_like(r))
     finite = jnp.isfinite(r) & jnp.all(jnp.isfinite(g), axis=1)   # a NaN gradient would poison H
-    return jnp.where(finite, r, 0.0), valid & finite, jnp.where(finite[:, None], g, 0.0)
+    g = jnp.where(finite[:, None], g, 0.0)
+    return jnp.where(finite, r, 0.0), valid & finite, g, settled
+
+
+def _split(out):
+    """sdf_fn's (sdf, valid) or (sdf, (valid, settled)) -> (sdf, (valid, settled))."""
+    r, aux = out
+    return (r, aux) if isinstance(aux, tuple) else (r, (aux, jnp.ones_like(aux)))
 
 
 def _lm_step(sdf_fn, points, mask, opts: TrackOptions, carry):
-    """One LM iteration: carry (i, R, t, lam, converged) -> the next."""
-    i, R, t, lam, _ = carry
+    """One LM iteration: carry (i, R, t, lam, converged, `_residuals` at (R, t)) -> the next. The residuals of
+    the pose held are carried, so each iteration evaluates the field (and its gradient) once, at the step tried."""
+    i, R, t, lam, _, (r, valid, g, settled) = carry
     k = jnp.maximum(opts.kernel_m, opts.kernel_start_m * opts.kernel_decay ** i.astype(jnp.float32))
-    r, valid, g = _residuals(sdf_fn, points, R, t, grad=True)
-    w = jnp.where(mask & valid, gm_weight(r, k), 0.0)
+    w = jnp.where(mask & valid & settled, gm_weight(r, k), 0.0)
     J = jnp.concatenate([jnp.cross(matmul(points, R.T), g), g], axis=1)   # [M, 6]: d r / d (omega, v)
     H = matmul((J * w[:, None]).T, J)
     b = matmul(J.T, w * r)
@@ -138,15 +159,19 @@ def _lm_step(sdf_fn, points, mask, opts: TrackOptions, carry):
     delta = -jnp.linalg.solve(A, b)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
     R2, t2 = matmul(so3_exp(delta[:3]), R), t + delta[3:]
-    r2, valid2, _ = _residuals(sdf_fn, points, R2, t2, grad=False)
-    better = gm_cost(r2, valid2, mask, k) <= gm_cost(r, valid, mask, k)
+    tried = _residuals(sdf_fn, points, R2, t2, grad=True)
+    # the two poses compared on the points settled at both (a point that leaves the settled part is neither a
+    # reward nor a penalty: it is still inside the map); points outside the map cost the ceiling
+    both = mask & settled & tried[3]
+    better = gm_cost(tried[0], tried[1], both, k) <= gm_cost(r, valid, both, k)
     small = jnp.maximum(jnp.linalg.norm(delta[3:]), 10.0 * jnp.linalg.norm(delta[:3])) < opts.step_tol_m
     R, t = jnp.where(better, R2, R), jnp.where(better, t2, t)
+    held = jax.tree_util.tree_map(lambda a, b_: jnp.where(better, a, b_), tried, (r, valid, g, settled))
     lam = jnp.where(better, jnp.maximum(lam / 3.0, 1e-7), lam * 4.0)
     # converged: a tiny step (kept or not: at the optimum float32 noise decides) once the kernel is at its
     # final scale, or damping so large that nothing moves
     done = (small & (k <= opts.kernel_m * 1.0001)) | (lam > 1e6)
-    return i + 1, R, t, lam, done
+    return i + 1, R, t, lam, done, held
 
 
 def search_grid(opts: TrackOptions) -> tuple[np.ndarray, np.ndarray]:
@@ -168,7 +193,7 @@ def grid_search(sdf_fn, points_s, mask, R, t, search, opts: TrackOptions):
     shifts, yaws = shifts * search[0], yaws * search[1]
     Rs = jax.vmap(lambda y: matmul(so3_exp(jnp.array([0.0, 0.0, 1.0]) * y), R))(yaws)    # [S, 3, 3]
     x = einsum("sij,kj->ski", Rs, points_s[:k]) + (t + shifts)[:, None]
-    r, valid = sdf_fn(x.reshape(-1, 3))
+    r, (valid, _) = _split(sdf_fn(x.reshape(-1, 3)))
     r, valid = r.reshape(len(yaws), k), valid.reshape(len(yaws), k)
     finite = jnp.isfinite(r)
     cost = jax.vmap(gm_cost, in_axes=(0, 0, None, None))(jnp.where(finite, r, 0.0), valid & finite, mask[:k],
@@ -202,21 +227,37 @@ def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOption
         R0, t0 = jax.lax.cond(search[0] > 0, functools.partial(staged_search, sdf_fn, points_s, mask, opts=opts),
                               lambda R, t, s: (R, t), R0, t0, search)
     step = functools.partial(_lm_step, sdf_fn, points_s, mask, opts)
-    init = (jnp.int32(0), R0, t0, jnp.float32(opts.damping), jnp.bool_(False))
-    i, R, t, _, done = jax.lax.while_loop(lambda c: (c[0] < opts.iterations) & ~c[4], step, init)
-    r, valid, _ = _residuals(sdf_fn, points_s, R, t, grad=False)
+    held = _residuals(sdf_fn, points_s, R0, t0, grad=True)
+    init = (jnp.int32(0), R0, t0, jnp.float32(opts.damping), jnp.bool_(False), held)
+    i, R, t, _, done, _ = jax.lax.while_loop(lambda c: (c[0] < opts.iterations) & ~c[4], step, init)
+    r, valid, _, settled = _residuals(sdf_fn, points_s, R, t, grad=False)
     inside = mask & valid
     n_in = jnp.sum(inside)
     rc = jnp.minimum(jnp.abs(r), opts.rms_clip_m)
     rms = jnp.sqrt(jnp.sum(jnp.where(inside, rc * rc, 0.0)) / jnp.maximum(n_in, 1))
-    return Refined(R, t, n_in / jnp.maximum(jnp.sum(mask), 1), jnp.where(n_in > 0, rms, jnp.inf), i, done)
+    return Refined(R, t, n_in / jnp.maximum(jnp.sum(mask), 1), jnp.where(n_in > 0, rms, jnp.inf), i, done,
+                   jnp.sum(inside & settled) / jnp.maximum(jnp.sum(mask), 1))
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search) -> Refined:
     """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)
     (the search's widths are the traced `search`; a half-width of 0 skips it)."""
-    return refine_pose(lambda x: query(static, state, x), points_s, mask, R0, t0, opts, search)
+    def sdf_fn(x):
+        sdf, valid = query(static, state, x)
+        if opts.min_seen <= 1:
+            return sdf, valid
+        return sdf, (valid, frames_seen(static, state, x) >= opts.min_seen)
+
+    return refine_pose(sdf_fn, points_s, mask, R0, t0, opts, search)
+
+
+def frames_seen(static: N3Static, state: N3State, points_m):
+    """[N] int32: frames that gave training pairs to the leaf voxel of each map-frame point [N, 3] (0: none)."""
+    pv = leaf_voxel(points_m, static.leaf)
+    vrow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
+    slot = jnp.where(vrow >= 0, state.store.slot_of_voxel[jnp.maximum(vrow, 0)], -1)
+    return jnp.where(slot >= 0, state.store.frames_seen[jnp.maximum(slot, 0)], 0)
 
 
 def subsample(points_s, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -246,6 +287,6 @@ def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOp
     pose[:3, :3] = np.asarray(out.R, np.float64)
     pose[:3, 3] = np.asarray(out.t, np.float64) + origin
     pose = orthonormalize(pose)
-    vf, rms = float(out.valid_fraction), float(out.rms_m)
-    ok = bool(out.converged) and vf >= opts.min_valid_fraction and rms <= opts.max_rms_m
-    return TrackResult(pose, ok, vf, rms, int(out.iterations))
+    vf, rms, sf = float(out.valid_fraction), float(out.rms_m), float(out.settled_fraction)
+    ok = bool(out.converged) and vf >= opts.min_valid_fraction and rms <= opts.max_rms_m and sf >= opts.min_settled_fraction
+    return TrackResult(pose, ok, vf, rms, int(out.iterations), sf)

@@ -191,6 +191,21 @@ def ate(est, gt, align: str = "none", backend: str = "auto") -> dict:
     return _stats(err, rot)
 
 
+def axis_errors(est, gt) -> dict:
+    """What the ATE's one number hides ([N,4,4] each, same frames, no alignment: a SLAM run starts at the
+    sequence's first pose): the height error est - gt (dz_mean_m, dz_min_m, dz_max_m), the horizontal
+    error (xy_rmse_m), and the tilt error, the angle between the estimated and the true up axis
+    (tilt_mean_deg, tilt_max_deg). A trajectory a centimetre or two low has a small ATE, and maps the road
+    that much low."""
+    est, gt = _poses_pair(est, gt, "axis_errors")
+    d = est[:, :3, 3] - gt[:, :3, 3]
+    cos = np.clip(np.sum(est[:, :3, 2] * gt[:, :3, 2], axis=1), -1.0, 1.0)   # the sensors' z axes in the world
+    tilt = np.degrees(np.arccos(cos))
+    return {"dz_mean_m": float(d[:, 2].mean()), "dz_min_m": float(d[:, 2].min()), "dz_max_m": float(d[:, 2].max()),
+            "xy_rmse_m": float(np.sqrt(np.mean(np.sum(d[:, :2] ** 2, axis=1)))),
+            "tilt_mean_deg": float(tilt.mean()), "tilt_max_deg": float(tilt.max())}
+
+
 def rpe(est, gt, delta: int = 1, backend: str = "auto") -> dict:
     """Relative pose error over `delta` frames ([N,4,4] each, same frames, N > delta).
 
