@@ -58,8 +58,7 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     step = N3SlamStep(cfg, frames[0][1], m)
     for i, (pts, pose) in enumerate(frames):
         p, n, _, img = scan.preprocess(pts, np.eye(4), m.cfg.preprocess, i, image=m.static.evidence)
-        step.prepared.append((p, n))
-        step.images.append(img)
+        step.scans.append(scan.PreparedScan(p, n, img))
         step.mapped_at.append(None)
         step.counter.append(0)
         step.submap.append(0)
@@ -159,3 +158,69 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     np.testing.assert_allclose(sb[vb], sa[va], atol=1e-5)
     ja, jb = (json.loads((r / "slam.json").read_text()) for r in (ref, cut))
     assert ja["frames"] == jb["frames"] == 16 and ja["tracked_ok"] == jb["tracked_ok"]
+
+
+SLOW_SLAM = """
+import sys, time
+from jaxmap.slam import n3slam
+real = n3slam.N3SlamStep.__call__
+def slow(self, frame):
+    out = real(self, frame)
+    time.sleep(0.4)  # leaves time to kill the run between its checkpoints
+    return out
+n3slam.N3SlamStep.__call__ = slow
+from jaxmap.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_city, tmp_path):
+    """`jaxmap slam` (one grid, tracking on) saves itself every `checkpoint_every` (4) frames; killed by
+    SIGKILL after its first save (no handler runs: what a crash or the OOM killer does), `--resume` goes on
+    from that save and ends with the trajectory (to 1e-9 m) and the map (SDF at points along the drive, to
+    1e-5 m) of the run that was never stopped. Without the periodic save there is no state to resume
+    (`slam_state.pkl` missing: the run is lost); the scans for loop corrections come from `slam_scans/`,
+    written a file a frame, not from the saved state."""
+    import json
+    import os
+    import pickle
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from jaxmap.cli import main
+    from jaxmap.n3.submap_mapper import load_map
+    from jaxmap.slam.n3slam import SCANS_DIR, STATE_FILE
+
+    sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=14", "checkpoint_every=4",
+                                   "n3.eval.n_samples=20000", "n3.mesh.resolution_m=0.2")]
+    base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", *sets]
+    ref, cut = tmp_path / "ref", tmp_path / "cut"
+    assert main([*base, "--out", str(ref)]) == 0
+    proc = subprocess.Popen([sys.executable, "-c", SLOW_SLAM, *base, "--out", str(cut)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    t0 = time.monotonic()
+    while not (cut / STATE_FILE).exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() - t0 < 600, "no SLAM checkpoint after 600 s"
+        time.sleep(0.02)
+    proc.kill()
+    proc.communicate()
+    assert proc.returncode == -signal.SIGKILL
+    saved = pickle.loads((cut / STATE_FILE).read_bytes())
+    assert 4 <= saved["frames"] < 14 and saved["frames"] % 4 == 0, saved["frames"]
+    assert len(saved["step"].scans._held) == 0   # the state carries the scans' count, not the scans
+    assert len(os.listdir(cut / SCANS_DIR)) >= saved["frames"]
+    assert json.loads((cut / "run.json").read_text())["status"] == "running"   # nothing ran at the kill
+    assert main(["slam", "--resume", str(cut), "--no-progress"]) == 0
+    a, b = (np.loadtxt(r / "trajectory_kitti.txt") for r in (ref, cut))
+    assert a.shape == b.shape == (14, 12)
+    np.testing.assert_allclose(b, a, atol=1e-9)
+    ma, mb = load_map(str(ref / "checkpoint")), load_map(str(cut / "checkpoint"))
+    rng = np.random.default_rng(0)
+    q = a[:, [3, 7, 11]][rng.integers(0, 14, 2000)] + np.c_[rng.uniform(-4, 4, (2000, 2)), rng.uniform(-2.0, -1.4, 2000)]
+    (sa, va), (sb, vb) = ma.sdf(q), mb.sdf(q)
+    np.testing.assert_array_equal(va, vb)
+    assert va.mean() > 0.5
+    np.testing.assert_allclose(sb[vb], sa[va], atol=1e-5)

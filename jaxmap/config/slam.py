@@ -206,6 +206,8 @@ class SlamConfig:
                                       # mesh/eval (`jaxmap slam --set n3.train.iters=20` appends one)
     n3_submap_m: float = 30.0         # n3_loop submaps: a new submap once the sensor has driven this far in the
                                       # current one (the N3 map's submaps.length_m, with submaps.revisit false)
+    checkpoint_every: int = 50        # n3: save the run (map, front end, scans) every this many frames, so that a
+                                      # crash or kill -9 loses at most these (0: only at the end and on Ctrl-C)
     output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
 
@@ -218,7 +220,7 @@ class SlamConfig:
             return {**{k: why for k in ("preprocess", "map", "mesh", "eval")},
                     "mesh_at_loops": "mesh_at_loops meshes the imt map at loops; with map_kind n3 it is not used"}
         why = f"{{}} is read with map_kind n3 only (this run's map_kind is {self.map_kind})"
-        out = {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_track_min_seen", "n3_loop",
+        out = {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_track_min_seen", "n3_loop", "checkpoint_every",
                                             "n3_loop_min_move_m", "n3_submap_m")}
         if not self.n3_config:
             out["n3_set"] = "n3_set sets keys of n3_config's N3 map, and this run has none (n3_config is empty)"

@@ -48,6 +48,7 @@ from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart, PreparedScan
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
+from jaxmap.slam.scan_store import ScanStore
 
 log = logging.getLogger("jaxmap")
 
@@ -131,11 +132,11 @@ class N3SlamStep:
     """The frame-loop step of `map_kind: n3` (see the module docstring).
     track: fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
 
-    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None, viewer=None):
+    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None, viewer=None,
+                 scans: ScanStore | None = None):
         self.cfg, self.mapper, self.track, self.viewer = cfg, mapper, track, viewer
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
-        self.prepared: list[tuple] = []          # per frame: (points, normals) sensor frame
-        self.images: list = []                   # per frame: its range image (None: evidence off)
+        self.scans = scans if scans is not None else ScanStore()   # per frame: its PreparedScan (sensor frame)
         self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at (in its
                                                  # submap's frame with n3_loop submaps, else the world's)
         self.counter: list[int] = []             # per frame: its number in its map (pairs carry it)
@@ -177,12 +178,11 @@ class N3SlamStep:
                 pts = pts[np.linalg.norm(pts, axis=1) <= self.cfg.n3_track_max_range_m]
             r = self.fe.add_frame(frame.points, refine=self._refine(pts), scan=frame.odometry_scan)
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
-            self.prepared.append(frame.prepared)
-            self.images.append(frame.image)
+            self.scans.append(PreparedScan(*frame.prepared, frame.image))
             self.mapped_at.append(None)
             self.counter.append(0)
             self.submap.append(0)
-            info = self._map(len(self.prepared) - 1, r.pose)
+            info = self._map(len(self.scans) - 1, r.pose)
             record = dict(r.timings, map_s=info["total_s"], loss=info["loss"], loops=len(self.loops),
                           ok=r.odometry_ok, tracked=r.refined)
             if r.optimized:
@@ -200,7 +200,7 @@ class N3SlamStep:
     def _map(self, i: int, pose: np.ndarray, **kw) -> dict:
         """Map frame i (of this run) at world pose [4, 4]; notes where its pairs went (submap, number, pose
         in the submap's frame)."""
-        info = self.mapper.add_prepared(PreparedScan(*self.prepared[i], self.images[i]), pose, **kw)
+        info = self.mapper.add_prepared(self.scans[i], pose, **kw)
         self.submap[i] = int(info.get("submap") or 0)
         self.counter[i] = int(info["frame"] if info.get("submap_frame") is None else info["submap_frame"])
         S = self.mapper.submaps.infos[self.submap[i]].pose if self.cfg.n3_loop == "submaps" else np.eye(4)
@@ -284,14 +284,15 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
     if track is None and cfg.n3_track:
         track = default_tracker(cfg)
     if step is None:
-        step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer)
+        scans = ScanStore(os.path.join(out_dir, SCANS_DIR)) if out_dir is not None else None
+        step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer, scans=scans)
     step.mapper, step.track, step.viewer, step.last = mapper, track, viewer, len(seq) - 1
-    start = len(step.prepared)
+    start = len(step.scans)
     load = lambda s, i: prepare_slam_frame(cfg, mapper.start, s, i)  # noqa: E731
     bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
     saves = None if out_dir is None else Checkpoints(
         save=lambda background: save_slam(step, out_dir), path=os.path.join(out_dir, "checkpoint"),
-        resume=f"jaxmap slam --resume {out_dir}")
+        every=cfg.checkpoint_every, resume=f"jaxmap slam --resume {out_dir}")
     loop = run_frames(Prefetcher(seq, start, len(seq), load), step, total=len(seq), start=start, progress=bar,
                       viewer=viewer, checkpoints=saves)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
@@ -324,17 +325,22 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
 
 
 STATE_FILE = "slam_state.pkl"
+SCANS_DIR = "slam_scans"
 
 
 def save_slam(step: N3SlamStep, out_dir: str) -> None:
-    """The run's SLAM checkpoint: the map in out_dir/checkpoint, then the step's state in
-    out_dir/slam_state.pkl (replaced whole, once the map is written; it names the map's frame count,
-    so a state never goes with another map)."""
-    step.mapper.save(os.path.join(out_dir, "checkpoint"))
+    """The run's SLAM checkpoint: the map in out_dir/checkpoint (a new checkpoint `<step>` there, the one
+    before it kept), then the step's state in out_dir/slam_state.pkl, replaced whole once the map is
+    written. The state names the map's checkpoint, so a kill -9 between the two leaves the state before
+    and its map (the scans are in out_dir/slam_scans, written as they came: `ScanStore`)."""
+    from jaxmap.checkpoint import steps
+
+    ckpt = os.path.join(out_dir, "checkpoint")
+    step.mapper.save(ckpt)
     path = os.path.join(out_dir, STATE_FILE)
     with open(path + ".tmp", "wb") as f:
-        pickle.dump({"frames": len(step.prepared), "map_frames": step.mapper.frames, "step": step}, f,
-                    protocol=pickle.HIGHEST_PROTOCOL)
+        pickle.dump({"frames": len(step.scans), "map_frames": step.mapper.frames, "map_step": steps(ckpt)[0],
+                     "step": step}, f, protocol=pickle.HIGHEST_PROTOCOL)
     os.replace(path + ".tmp", path)
 
 
@@ -349,8 +355,17 @@ def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
                               "save, or was killed): start again with --overwrite")
     with open(path, "rb") as f:
         saved = pickle.load(f)
-    mapper = load_map(os.path.join(out_dir, "checkpoint"))
+    ckpt = os.path.join(out_dir, "checkpoint")
+    if "map_step" in saved:  # the map written with this state (a later one may be there: killed in between)
+        ckpt = os.path.join(ckpt, str(saved["map_step"]))
+        if not os.path.isdir(ckpt):
+            raise CheckpointError(f"{ckpt}: missing, the map saved with {STATE_FILE}; the run cannot be continued: "
+                                  "start again with --overwrite")
+    mapper = load_map(ckpt)
+    step = saved["step"]
+    if step.scans.directory is not None:  # the run directory may have moved since
+        step.scans.directory = os.path.join(out_dir, SCANS_DIR)
     if mapper.frames != saved["map_frames"]:
         raise CheckpointError(f"{out_dir}: the map's checkpoint holds {mapper.frames} frames and {STATE_FILE} "
                               f"{saved['map_frames']}: they are not one save; start again with --overwrite")
-    return mapper, saved["step"]
+    return mapper, step

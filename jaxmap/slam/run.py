@@ -256,7 +256,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
     step = None
     if resume:
         mapper, step = load_slam(out_dir)
-        log.info("resuming %s at frame %d of %d", out_dir, len(step.prepared), len(seq))
+        log.info("resuming %s at frame %d of %d", out_dir, len(step.scans), len(seq))
     else:
         mapper = open_n3_mapper(cfg, out_dir, seq)
         save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
