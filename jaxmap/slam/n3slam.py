@@ -20,13 +20,14 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
      the frames whose position moved more than that (`N3Mapper.forget_frames`) and adds those frames
      again, into the map as it is; `none` leaves the map as mapped (an ablation). docs/slam.md has the
      measurements that chose between them.
-The preprocessed scans (sensor frame) of every frame are kept on the host for step 4 (a few hundred
-kB a frame).
+The preprocessed scans (sensor frame) of every frame are kept for step 4, one file a frame in the run's
+slam_scans/ (`ScanStore`: ~1.5 MB a frame, two in memory).
 
-A run stopped by Ctrl-C or SIGTERM (between two frames) and a finished run save the map (checkpoint/)
-and then the step's state (slam_state.pkl: the front end with its pose graph and KISS-ICP's local map,
-the per-frame scans and records); `jaxmap slam --resume RUN` goes on from there (`load_slam`) with the
-trajectory and map the run would have made without the stop.
+Every `checkpoint_every` frames, a run stopped by Ctrl-C or SIGTERM (between two frames) and a finished
+run save the map (checkpoint/) and then the step's state (slam_state.pkl: the front end with its pose
+graph and KISS-ICP's local map, the per-frame records, the scans' count; it names the map checkpoint
+written with it); `jaxmap slam --resume RUN` goes on from there (`load_slam`) with the trajectory and map
+the run would have made without the stop, also after kill -9 (from the last save).
 """
 from __future__ import annotations
 
@@ -96,7 +97,22 @@ def default_tracker(cfg: SlamConfig):
     from jaxmap.slam.track import TrackOptions, track_scan
 
     opts = TrackOptions(min_valid_fraction=cfg.n3_track_min_valid, min_seen=cfg.n3_track_min_seen)
-    return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
+    if os.environ.get("JAXMAP_YOUNG_ROT") != "1":
+        return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
+    every = dataclasses.replace(opts, min_seen=0)
+
+    def track(static, state, points, T_init):
+        r = track_scan(static, state, points, T_init, opts)
+        if r.ok or r.settled_fraction >= opts.min_settled_fraction or opts.min_seen <= 1:
+            return r
+        y = track_scan(static, state, points, T_init, every)
+        if not y.ok:
+            return r
+        pose = np.array(T_init, np.float64)
+        pose[:3, :3] = y.pose[:3, :3]
+        return y._replace(pose=pose, settled_fraction=r.settled_fraction)
+
+    return track
 
 
 def show_loop(viewer, fe: FrontEnd, r) -> None:
