@@ -20,6 +20,11 @@ Two more runs on an unseen 300-frame room (seed 1) with Kinect-like depth noise 
 * `drift` (`--only drift`): every 6th frame (a keyframe rate: ~13 cm and 7 deg apart), where the
   odometry drifts by decimetres before the loop; the ATE of odometry and of SLAM, and the maps built
   with the true poses, the odometry poses and the SLAM run's remapped map (ratio remapped / true).
+With `map_kind: n3` (`--data` a city, configs/city_slam.yaml) the online N3 map is set against the N3
+maps of the same frames with the true poses and with the odometry's, and what the ATE hides is printed
+per trajectory: the height error (mean, min, max), the horizontal RMSE and the tilt error
+(`jaxmap.slam.trajectory.axis_errors`), and per map the mean signed error of its road and sidewalk (a
+trajectory a centimetre low maps the road that much low, and the standard protocol's crop cuts it).
 Everything is written to OUT/bench.json.
 """
 from __future__ import annotations

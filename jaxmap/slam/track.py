@@ -76,7 +76,7 @@ class TrackOptions:
     search_stages: int = 2             # ... then again around the best, the grid shrunk to its spacing
     min_seen: int = 0                  # > 1: the solve weighs (and compares poses on) only the points whose leaf
                                        # voxel holds pairs of at least this many frames (`track_program`)
-    min_settled_fraction: float = 0.5  # ... and ok needs at least this fraction of the points there
+    min_settled_fraction: float = 0.5  # ... and then ok needs at least this fraction of the points there
 
 
 class TrackResult(NamedTuple):
@@ -288,5 +288,6 @@ def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOp
     pose[:3, 3] = np.asarray(out.t, np.float64) + origin
     pose = orthonormalize(pose)
     vf, rms, sf = float(out.valid_fraction), float(out.rms_m), float(out.settled_fraction)
-    ok = bool(out.converged) and vf >= opts.min_valid_fraction and rms <= opts.max_rms_m and sf >= opts.min_settled_fraction
+    settled = opts.min_seen <= 1 or sf >= opts.min_settled_fraction
+    ok = bool(out.converged) and vf >= opts.min_valid_fraction and rms <= opts.max_rms_m and settled
     return TrackResult(pose, ok, vf, rms, int(out.iterations), sf)
