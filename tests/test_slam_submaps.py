@@ -110,6 +110,26 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     assert len(m.submaps.infos[last].path) == int(np.sum(sub == last))
 
 
+def assert_same_run(ref, cut, frames: int):
+    """The SLAM runs in directories ref and cut made the same trajectory (to 1e-9 m: KISS-ICP's own
+    run-to-run noise is 1e-15) and the same map (SDF at points of the road around the drive, the sensor
+    1.73 m above it, to 1e-5 m). Returns their maps."""
+    from jaxmap.n3.submap_mapper import load_map
+
+    a, b = (np.loadtxt(r / "trajectory_kitti.txt") for r in (ref, cut))
+    assert a.shape == b.shape == (frames, 12)
+    np.testing.assert_allclose(b, a, atol=1e-9)
+    ma, mb = load_map(str(ref / "checkpoint")), load_map(str(cut / "checkpoint"))
+    rng = np.random.default_rng(0)
+    q = a[:, [3, 7, 11]][rng.integers(0, frames, 2000)] + np.c_[rng.uniform(-4, 4, (2000, 2)),
+                                                                rng.uniform(-2.0, -1.4, 2000)]
+    (sa, va), (sb, vb) = ma.sdf(q), mb.sdf(q)
+    np.testing.assert_array_equal(va, vb)
+    assert va.mean() > 0.5
+    np.testing.assert_allclose(sb[vb], sa[va], atol=1e-5)
+    return ma, mb
+
+
 def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small_noisy_city, tmp_path, monkeypatch,
                                                                           capsys):
     """`jaxmap slam` on submaps (tracking on), stopped by SIGINT after frame 8 of 16, then `--resume`d:
@@ -122,7 +142,6 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     import signal
 
     from jaxmap.cli import main
-    from jaxmap.n3.submap_mapper import load_map
     from jaxmap.slam import n3slam
 
     sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=16", "n3_loop=submaps",
@@ -144,18 +163,8 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     assert json.loads((cut / "run.json").read_text())["status"] == "interrupted"
     monkeypatch.setattr(n3slam.N3SlamStep, "__call__", step)
     assert main(["slam", "--resume", str(cut), "--no-progress"]) == 0
-    a, b = (np.loadtxt(r / "trajectory_kitti.txt") for r in (ref, cut))
-    assert a.shape == b.shape == (16, 12)
-    np.testing.assert_allclose(b, a, atol=1e-9)
-    ma, mb = load_map(str(ref / "checkpoint")), load_map(str(cut / "checkpoint"))
+    ma, mb = assert_same_run(ref, cut, 16)
     assert len(ma.submaps.infos) == len(mb.submaps.infos) >= 2
-    rng = np.random.default_rng(0)
-    # the road around the drive (the sensor 1.73 m above it)
-    q = a[:, [3, 7, 11]][rng.integers(0, 16, 2000)] + np.c_[rng.uniform(-4, 4, (2000, 2)), rng.uniform(-2.0, -1.4, 2000)]
-    (sa, va), (sb, vb) = ma.sdf(q), mb.sdf(q)
-    np.testing.assert_array_equal(va, vb)
-    assert va.mean() > 0.5
-    np.testing.assert_allclose(sb[vb], sa[va], atol=1e-5)
     ja, jb = (json.loads((r / "slam.json").read_text()) for r in (ref, cut))
     assert ja["frames"] == jb["frames"] == 16 and ja["tracked_ok"] == jb["tracked_ok"]
 
@@ -190,7 +199,6 @@ def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_cit
     import time
 
     from jaxmap.cli import main
-    from jaxmap.n3.submap_mapper import load_map
     from jaxmap.slam.n3slam import SCANS_DIR, STATE_FILE
 
     sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=14", "checkpoint_every=4",
@@ -214,13 +222,4 @@ def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_cit
     assert len(os.listdir(cut / SCANS_DIR)) >= saved["frames"]
     assert json.loads((cut / "run.json").read_text())["status"] == "running"   # nothing ran at the kill
     assert main(["slam", "--resume", str(cut), "--no-progress"]) == 0
-    a, b = (np.loadtxt(r / "trajectory_kitti.txt") for r in (ref, cut))
-    assert a.shape == b.shape == (14, 12)
-    np.testing.assert_allclose(b, a, atol=1e-9)
-    ma, mb = load_map(str(ref / "checkpoint")), load_map(str(cut / "checkpoint"))
-    rng = np.random.default_rng(0)
-    q = a[:, [3, 7, 11]][rng.integers(0, 14, 2000)] + np.c_[rng.uniform(-4, 4, (2000, 2)), rng.uniform(-2.0, -1.4, 2000)]
-    (sa, va), (sb, vb) = ma.sdf(q), mb.sdf(q)
-    np.testing.assert_array_equal(va, vb)
-    assert va.mean() > 0.5
-    np.testing.assert_allclose(sb[vb], sa[va], atol=1e-5)
+    assert_same_run(ref, cut, 14)
