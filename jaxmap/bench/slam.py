@@ -201,10 +201,10 @@ def _print_n3(res: dict) -> None:
     r = res["recon"]
     if r["slam (online)"] and r["GT poses (jaxmap map)"]:
         print(f"slam / GT-pose C-L1 = {r['slam (online)']['chamfer_l1_cm'] / r['GT poses (jaxmap map)']['chamfer_l1_cm']:.3f}"
-              " (target <= 1.15)")
+              " (target <= 1.10)")
     sp = res["s_per_frame"]
     print(f"s/frame (wall less compiling): GT poses {sp['GT poses (jaxmap map)']:.2f}, slam {sp['slam (online)']:.2f} "
-          f"= {sp['slam (online)'] / sp['GT poses (jaxmap map)']:.2f}x (target <= 1.5); load {res['load'][0][0]:.1f} "
+          f"= {sp['slam (online)'] / sp['GT poses (jaxmap map)']:.2f}x (target <= 1.3); load {res['load'][0][0]:.1f} "
           f"-> {res['load'][1][0]:.1f}")
     st = res["step"]
     print(f"slam medians per frame: odometry {st['median_odometry_s']:.2f} s, tracking {st['median_refine_s']:.2f} s, "
