@@ -386,6 +386,10 @@ def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
                                   "start again with --overwrite")
     mapper = load_map(ckpt)
     step = saved["step"]
+    if not hasattr(step, "scans"):  # saved before the scans went to disk (their lists in the state itself)
+        step.scans = ScanStore()
+        for (points, normals), image in zip(step.__dict__.pop("prepared"), step.__dict__.pop("images")):
+            step.scans.append(PreparedScan(points, normals, image))
     if step.scans.directory is not None:  # the run directory may have moved since
         step.scans.directory = os.path.join(out_dir, SCANS_DIR)
     if mapper.frames != saved["map_frames"]:
