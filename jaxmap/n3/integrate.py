@@ -23,7 +23,7 @@ from jaxmap.grid import hashing
 from jaxmap.grid.compaction import nonzero_from
 from jaxmap.n3 import evidence as n3evidence
 from jaxmap.n3 import pool, window
-from jaxmap.n3.query import query
+from jaxmap.n3.query import query, voxel_rows
 from jaxmap.n3.sampling import Samples, sample_frame
 from jaxmap.n3.scan_batch import ScanBatch
 from jaxmap.n3.state import N3State, N3Static
@@ -69,9 +69,7 @@ def filter_moved_points(static: N3Static, state: N3State, scan: ScanBatch) -> tu
     background): it gets no samples, so it neither draws a surface nor marks its voxel as hit (which
     would shield it from carving). Returns (scan with those points invalid, [] int32 points dropped)."""
     sdf, q_ok = query(static, state, scan.points)
-    pv = gfeat.leaf_voxel(scan.points, static.leaf)
-    prow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
-    pslot = window.block_of(state.store, prow)
+    pslot = window.block_of(state.store, voxel_rows(static, state, scan.points))
     trained = (pslot >= 0) & (state.store.count[jnp.maximum(pslot, 0)] >= max(static.nt, 1))
     # (once the decoder is frozen: before that the field is still finding its shape)
     mature = state.frame >= static.freeze_after_frame
@@ -84,9 +82,7 @@ def drop_void_points(static: N3Static, state: N3State, scan: ScanBatch):
     """Scan points that land in void voxels (`jaxmap.n3.evidence`: seen free since their last hit) get no
     samples: they are on something that moves, or a sensor artifact. Returns (scan with those points
     invalid, [N] int32 voxel row of every scan point (-1: none yet), [] int32 points dropped)."""
-    pv = gfeat.leaf_voxel(scan.points, static.leaf)
-    rows = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
-    rows = jnp.where(scan.valid, rows, -1)
+    rows = jnp.where(scan.valid, voxel_rows(static, state, scan.points), -1)
     is_void = n3evidence.void(state.evidence, static.void_frames)
     drop = (rows >= 0) & is_void[jnp.maximum(rows, 0)]
     return scan._replace(valid=scan.valid & ~drop), rows, jnp.sum(drop, dtype=jnp.int32)

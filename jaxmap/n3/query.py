@@ -36,10 +36,15 @@ def query(static: N3Static, state: N3State, points_m):
     valid = jnp.all(rows[:, ml * 8:(ml + 1) * 8] >= 0, axis=1)                     # rows: [N, L*8]
     valid &= jnp.sum(rows[:, :8] >= 0, axis=1) >= static.min_leaf_corners
     if static.evidence:
-        pv = leaf_voxel(points_m, static.leaf)
-        vrow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
+        vrow = voxel_rows(static, state, points_m)
         valid &= ~((vrow >= 0) & n3evidence.void(state.evidence, static.void_frames)[jnp.maximum(vrow, 0)])
     return jax.vmap(decode, in_axes=(None, 0))(state.decoder, f), valid
+
+
+def voxel_rows(static: N3Static, state: N3State, points_m):
+    """The voxel row of the leaf voxel of each map-frame point [N, 3] -> [N] int32 (-1: not allocated)."""
+    pv = leaf_voxel(points_m, static.leaf)
+    return hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
 
 
 @functools.partial(jax.jit, static_argnums=0)

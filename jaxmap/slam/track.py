@@ -46,9 +46,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmap.geometry import einsum, matmul, orthonormalize
-from jaxmap.grid import hashing
-from jaxmap.grid.features import leaf_voxel
-from jaxmap.n3.query import query
+from jaxmap.n3 import window
+from jaxmap.n3.query import query, voxel_rows
 from jaxmap.n3.state import N3State, N3Static, origin_world
 
 
@@ -254,9 +253,7 @@ def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s
 
 def frames_seen(static: N3Static, state: N3State, points_m):
     """[N] int32: frames that gave training pairs to the leaf voxel of each map-frame point [N, 3] (0: none)."""
-    pv = leaf_voxel(points_m, static.leaf)
-    vrow = hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
-    slot = jnp.where(vrow >= 0, state.store.slot_of_voxel[jnp.maximum(vrow, 0)], -1)
+    slot = window.block_of(state.store, voxel_rows(static, state, points_m))
     return jnp.where(slot >= 0, state.store.frames_seen[jnp.maximum(slot, 0)], 0)
 
 
