@@ -107,6 +107,19 @@ def test_the_search_brings_a_guess_from_outside_the_fields_reach(hall_map):
     assert res.ok and rot < 0.2 and pos < 0.02, (res, rot, pos)
 
 
+def test_settled_points_in_a_finished_submap_keep_tracking_it(hall_map):
+    """A map of submaps keeps no pair store for the submaps it is not mapping (`submaps.query_view`), so
+    `min_seen` cannot count their frames: every point of such a map is settled, and tracking it with
+    `min_seen` gives what tracking it with every point gives (it raised an AttributeError before)."""
+    from jaxmap.n3.submaps import query_view
+
+    parked = query_view(hall_map.state)
+    every = track_scan(hall_map.static, parked, scan(), perturbed())
+    res = track_scan(hall_map.static, parked, scan(), perturbed(), TrackOptions(min_seen=2))
+    assert res.ok and res.settled_fraction == pytest.approx(res.valid_fraction), res
+    np.testing.assert_allclose(res.pose, every.pose, atol=1e-6)
+
+
 @pytest.mark.parametrize("T0, why", [
     (make_pose(np.eye(3), SENSOR + np.array([40.0, 0.0, 0.0])), "40 m off: outside the map"),
     (make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), np.pi / 2), SENSOR), "turned 90 deg"),

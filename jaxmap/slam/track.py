@@ -252,7 +252,10 @@ def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s
 
 
 def frames_seen(static: N3Static, state: N3State, points_m):
-    """[N] int32: frames that gave training pairs to the leaf voxel of each map-frame point [N, 3] (0: none)."""
+    """[N] int32: frames that gave training pairs to the leaf voxel of each map-frame point [N, 3] (0: none).
+    A finished submap keeps no pair store (`jaxmap.n3.submaps`): every point of it counts as seen enough."""
+    if state.store is None:
+        return jnp.full(points_m.shape[:1], jnp.iinfo(jnp.int32).max, jnp.int32)
     slot = window.block_of(state.store, voxel_rows(static, state, points_m))
     return jnp.where(slot >= 0, state.store.frames_seen[jnp.maximum(slot, 0)], 0)
 
