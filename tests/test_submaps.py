@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from analytic_lidar import corridor_scan, pose_at
+from jaxmap.checkpoint import steps
 from jaxmap.config import ConfigError, load_config
 from jaxmap.errors import CheckpointError
 from jaxmap.mesh import extract_mesh, extract_mesh_groups
@@ -162,9 +163,13 @@ def test_a_map_of_submaps_saved_and_loaded_goes_on_as_if_never_stopped(tmp_path)
     for pts, pose in frames:
         a.add_frame(pts, pose)
     b = SubmapMapper(cfg, directory=str(tmp_path / "b" / "submaps"))
-    for pts, pose in frames[:11]:
+    for i, (pts, pose) in enumerate(frames[:11]):
         b.add_frame(pts, pose)
-    b.save(str(tmp_path / "b" / "checkpoint"))
+        if i + 1 in (7, 11):  # one save in the first submap, one in the second (3 frames of its own)
+            b.save(str(tmp_path / "b" / "checkpoint"))
+    # numbered by the whole map's frames: the later save does not delete the one before it (a SLAM state
+    # names that one until the state written after the new save replaces it)
+    assert len(b.submaps.infos) == 2 and steps(str(tmp_path / "b" / "checkpoint")) == [11, 7]
     c = load_map(str(tmp_path / "b" / "checkpoint"))
     with pytest.raises(CheckpointError, match="load_map"):  # one grid's loader says where to go
         N3Mapper.load(str(tmp_path / "b" / "checkpoint"))

@@ -173,15 +173,20 @@ def meta_of(cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict |
             "capacity": dataclasses.asdict(n3state.Capacities.of(state)), "timings": list(timings), **(extra or {})}
 
 
-def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> None:
-    """Write the map as checkpoint `<frames mapped>` of directory `path`, atomically (the two newest are
-    kept), one array at a time: on the CPU straight from the state's buffers, with no copy."""
+def save_state(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None,
+               step: int | None = None) -> None:
+    """Write the map as checkpoint `<step>` of directory `path` (default: the state's frames mapped),
+    atomically (the two newest are kept), one array at a time: on the CPU straight from the state's
+    buffers, with no copy. A map of submaps passes its frames in all submaps: the steps must grow, or the
+    save prunes the checkpoints after it (`jaxmap.checkpoint.save_arrays`)."""
     wait_for_saves()
-    _write(path, cfg, state, timings, extra)
+    _write(path, cfg, state, timings, extra, step)
 
 
-def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> None:
-    save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings, extra), step=int(state.frame))
+def _write(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None,
+           step: int | None = None) -> None:
+    save_arrays(path, compact_leaves(state), meta_of(cfg, state, timings, extra),
+                step=int(state.frame) if step is None else int(step))
 
 
 # A copy of the whole state on the device, one program (leaf by leaf, the copies compiled one small
@@ -190,14 +195,14 @@ _snapshot = jax.jit(lambda state: jax.tree_util.tree_map(jnp.copy, state))
 
 
 def save_state_async(path: str, cfg: MapConfig, state: n3state.N3State, timings: list, copy: bool = True,
-                     extra: dict | None = None) -> None:
+                     extra: dict | None = None, step: int | None = None) -> None:
     """Like `save_state`, but written in a background thread (`SAVES`) from a copy of the state made on the
     device (`_snapshot`: asynchronous, in order before the next frame program, which donates the state's
     buffers), so the caller goes on at once; copy=False: from `state` itself, which nothing may change
     until it is written. Call `wait_for_saves()` before relying on the files."""
     wait_for_saves()
     snapshot, timings = _snapshot(state) if copy else state, list(timings)
-    SAVES.start(lambda: _write(path, cfg, snapshot, timings, extra))
+    SAVES.start(lambda: _write(path, cfg, snapshot, timings, extra, step))
 
 
 def saving() -> bool:

@@ -204,16 +204,19 @@ class SubmapMapper(N3Mapper):
 
     # ---- checkpoints -------------------------------------------------------------------------------
     def save(self, path: str, background: bool = False, copy: bool = True) -> None:
-        """The submap being mapped as the checkpoint in `path`, with the index (the others are on disk
-        in the submaps' directory: `park` wrote them, and the saves run in order)."""
+        """The submap being mapped as checkpoint `<frames in all submaps>` in `path`, with the index (the
+        others are on disk in the submaps' directory: `park` wrote them, and the saves run in order)."""
         from jaxmap.n3.checkpoint import save_state, save_state_async
 
         extra = {"submaps": {**self._subs.index(), "frames": self.frames, "dir": os.path.relpath(self._subs.dir, os.path.dirname(
             os.path.abspath(path)))}}
+        # numbered by the frames of every submap (the active one's own count restarts at each switch, and a
+        # save numbered below the one before it would delete it: the SLAM state names that one until it is
+        # replaced, `jaxmap.slam.n3slam.save_slam`)
         if background:
-            save_state_async(path, self.cfg, self.state, self.timings, copy=copy, extra=extra)
+            save_state_async(path, self.cfg, self.state, self.timings, copy=copy, extra=extra, step=self.frames)
         else:
-            save_state(path, self.cfg, self.state, self.timings, extra=extra)
+            save_state(path, self.cfg, self.state, self.timings, extra=extra, step=self.frames)
 
 
 def new_map(start, directory: str | None = None, **kw) -> N3Mapper:
