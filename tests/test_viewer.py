@@ -180,18 +180,26 @@ def test_viewer_in_headless_chromium_shows_the_run(small_run, tmp_path):
             r = screenshot(f"http://127.0.0.1:{v.port}/", out, budget_ms=budget_ms)
             assert r.returncode == 0 and os.path.isfile(out), r.stderr[-2000:]
             canvas = _canvas(out)
-            if _drawn(canvas):
-                break
+            if _drawn(canvas) and _mesh_share(canvas) > 0.05 and _coloured_share(canvas) > 0.01:
+                break  # (a loaded machine has also captured the page with the scene only half delivered)
     finally:
         v.close()
     assert _drawn(canvas), "three screenshots showed an empty canvas"
     # the mesh covers part of the canvas
-    background = np.median(np.concatenate([canvas[:5].reshape(-1, 3), canvas[-5:].reshape(-1, 3)]), axis=0)
-    differs = np.abs(canvas - background).sum(-1) > 30
-    assert differs.mean() > 0.05, f"only {100 * differs.mean():.2f} % of the canvas differs from the background"
+    assert _mesh_share(canvas) > 0.05, f"only {100 * _mesh_share(canvas):.2f} % of the canvas differs from the background"
     # error-coloured mesh: some pixels are clearly bluish/greenish (not grey UI)
-    sat = canvas.max(-1) - canvas.min(-1)
-    assert (sat > 60).mean() > 0.01
+    assert _coloured_share(canvas) > 0.01
+
+
+def _mesh_share(canvas: np.ndarray) -> float:
+    """Share of the canvas that differs from its background (the median of its top and bottom rows)."""
+    background = np.median(np.concatenate([canvas[:5].reshape(-1, 3), canvas[-5:].reshape(-1, 3)]), axis=0)
+    return float((np.abs(canvas - background).sum(-1) > 30).mean())
+
+
+def _coloured_share(canvas: np.ndarray) -> float:
+    """Share of the canvas in clearly saturated colours (the error colours; the UI is grey)."""
+    return float((canvas.max(-1) - canvas.min(-1) > 60).mean())
 
 
 def test_view_command_no_wait(small_run, capsys):
