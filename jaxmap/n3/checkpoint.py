@@ -80,7 +80,7 @@ def _compact_fns(state: n3state.N3State, copy: bool) -> dict:
         "slot_of_voxel": later(rows, st.slot_of_voxel, nv), "window_ids": value(st.window_ids),
         "window_n": value(st.window_n), "origin_vox": value(state.origin_vox), "key": value(state.key),
         "frame": value(state.frame),
-        "hyper": {"lr": value(state.hyper.lr), "beta": value(state.hyper.beta), "weight_e": value(state.hyper.weight_e)},
+        "hyper": {k: value(getattr(state.hyper, k)) for k in ("lr", "beta", "weight_e", "iters")},
     }
     if state.evidence is not None:  # free-space evidence, per voxel row
         tree["evidence"] = {"free_run": later(rows, state.evidence.free_run, nv),
@@ -142,7 +142,9 @@ def expand(static: n3state.N3Static, cfg: MapConfig, caps: n3state.Capacities, c
         store=store, pool=_expand_pool(state.pool, c), evidence=_expand_evidence(state.evidence, c, nv),
         origin_vox=jnp.asarray(c["origin_vox"]),
         key=jnp.asarray(c["key"]),
-        frame=jnp.asarray(c["frame"]), hyper=n3state.Hyper(**as_j(c["hyper"])),
+        frame=jnp.asarray(c["frame"]),
+        # (a checkpoint from before `iters` was in Hyper: the config's, which the empty state holds)
+        hyper=state.hyper.replace(**as_j(c["hyper"])),
     )
 
 

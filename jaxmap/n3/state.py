@@ -30,7 +30,8 @@ from jaxmap.sizes import pow2, round_up
 @dataclasses.dataclass(frozen=True)
 class N3Static:
     """Everything that fixes the compiled programs (hashable; a jit static argument). Values that
-    do not change shapes or control flow (learning rate, beta, eikonal weight) are in `Hyper`."""
+    do not change shapes or control flow (learning rate, beta, eikonal weight, iterations a frame) are
+    in `Hyper`: a config that changes only those runs the program already compiled."""
 
     leaf: float                 # leaf voxel size, metres
     levels: int                 # feature levels L
@@ -54,7 +55,6 @@ class N3Static:
     carve_samples: int
     carve_rule: str
     carve_sign: bool            # every ray sample (sign only) raises the pairs stored deeper than it allows
-    iters: int
     hierarchical: bool
     nv: int
     np_per_voxel: int
@@ -98,7 +98,7 @@ class N3Static:
             free_label=s.surface_sample_range_m if s.free_label_m < 0 else s.free_label_m,
             free_label_mode=s.free_label_mode, carve=w.carve, carve_margin=w.carve_margin_m,
             carve_samples=w.carve_samples, carve_rule=w.carve_rule, carve_sign=w.carve_sign,
-            iters=t.iters, hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
+            hierarchical=t.hierarchical, nv=t.nv, np_per_voxel=t.np_per_voxel, nt=t.nt,
             batch_size=t.batch_size, freeze_after_frame=t.freeze_after_frame, reset_adam=t.reset_adam_each_frame,
             window_mode=w.mode, keyframes=w.keyframes if w.mode == "keyframe" else 0,
             block_policy=w.block_policy, pairs_per_frame=w.pairs_per_frame,
@@ -136,6 +136,7 @@ class Hyper:
     lr: jax.Array        # [] Adam learning rate (features and decoder)
     beta: jax.Array      # [] BCE sigmoid scale, metres
     weight_e: jax.Array  # [] eikonal weight
+    iters: jax.Array     # [] int32 training iterations a frame (train.iters; the loop's trip count is traced)
 
 
 @flax.struct.dataclass
@@ -222,7 +223,8 @@ def init_state(static: N3Static, cfg, caps: Capacities) -> N3State:
         origin_vox=jnp.zeros((3,), jnp.int32),
         key=jax.random.PRNGKey(t.seed),
         frame=jnp.zeros((), jnp.int32),
-        hyper=Hyper(lr=jnp.float32(t.lr), beta=jnp.float32(t.sigma_sigmoid_m), weight_e=jnp.float32(t.weight_e)),
+        hyper=Hyper(lr=jnp.float32(t.lr), beta=jnp.float32(t.sigma_sigmoid_m), weight_e=jnp.float32(t.weight_e),
+                    iters=jnp.int32(t.iters)),
     )
 
 

@@ -81,10 +81,10 @@ def train(static: N3Static, state: N3State, key, active=True) -> tuple[N3State, 
                                                 (dec, d_opt))
         return table, f_opt, dec, d_opt, key, acc + jnp.stack([loss, l_bce, l_eik])
 
-    n_iters = jnp.where(active, static.iters, 0)
+    n_iters = jnp.where(active, h.iters, 0)
     carry = (state.feature_table, feature_opt, state.decoder, state.decoder_opt, key, jnp.zeros((3,)))
     table, f_opt, dec, d_opt, _, acc = jax.lax.fori_loop(0, n_iters, body, carry)
-    acc = acc / static.iters
+    acc = acc / jnp.maximum(h.iters, 1)
     state = state.replace(feature_table=table, feature_opt=f_opt, decoder=dec, decoder_opt=d_opt,
                           frame=state.frame + active.astype(jnp.int32))
     return state, TrainStats(acc[0], acc[1], acc[2])
