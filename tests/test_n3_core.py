@@ -298,6 +298,16 @@ def test_thirty_frames_compile_nothing_after_the_warm_up():
     for pts, pose in frames[1:]:
         m.add_frame(pts, pose)
     assert len(compiles) == warm, compiles[warm:]
+    # the iterations a frame are traced (`Hyper.iters`): a frame added with none (what SLAM may do with the
+    # frames it re-adds after a loop) trains no feature and compiles nothing; with them back, it trains
+    for iters, trained in ((0, False), (1, True)):
+        rows = m.timings[-1]["feature_rows"]
+        before = np.array(m.state.feature_table)[:rows]  # (host side: a device slice would compile)
+        m.set_iters(iters)
+        m.add_frame(*frames[-1 if trained else -2])  # (added again, as SLAM re-adds after a loop)
+        assert int(m.state.hyper.iters) == iters
+        assert np.any(np.asarray(m.state.feature_table)[:rows] != before) == trained
+    assert len(compiles) == warm, compiles[warm:]
 
 
 def test_hierarchical_sampler_matches_algorithm_1():

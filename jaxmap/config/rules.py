@@ -192,7 +192,7 @@ RULES: dict[type, dict[str, Rule]] = {
     OdometryConfig: {"method": one_of(*ODOMETRY_METHODS), "max_iter": at_least(1), "normals_k": at_least(3)},
     FrontEndConfig: {"edge_information": one_of(*EDGE_INFORMATION)},
     SlamConfig: {"map_kind": one_of(*MAP_KINDS), "n3_loop": one_of(*N3_LOOP_MODES),
-                 "n3_loop_min_move_m": at_least(0.0), "n3_track_min_valid": within(0.0, 1.0),
+                 "n3_loop_min_move_m": at_least(0.0), "n3_loop_readd_iters": at_least(0), "n3_track_min_valid": within(0.0, 1.0),
                  "n3_track_max_range_m": at_least(0.0), "n3_track_min_seen": at_least(0), "n3_submap_m": above(0.0),
                  "checkpoint_every": at_least(0)},
     EncoderConfig: {"inputs": one_of("joint", "split")},

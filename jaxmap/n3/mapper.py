@@ -171,6 +171,12 @@ class N3Mapper:
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
         core.compiled_step(self.static, abstract, batch, self._headroom.get("scan_rows", 0))
 
+    def set_iters(self, iters: int) -> None:
+        """Training iterations of the frames added from now on (`Hyper.iters`: traced, nothing recompiles),
+        e.g. fewer for the frames SLAM re-adds after a loop correction; `cfg.train.iters` is the map's own."""
+        st = self.state
+        self.state = st.replace(hyper=st.hyper.replace(iters=jax.device_put(np.int32(iters))))  # (no jnp: it compiles a cast)
+
     def follow(self, uploader) -> None:
         """The frame loop's `scan.Uploader` (one grid keeps its origin: nothing to follow; `SubmapMapper`)."""
 

@@ -31,6 +31,7 @@ the run would have made without the stop, also after kill -9 (from the last save
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import os
@@ -229,6 +230,20 @@ class N3SlamStep:
         self.mapped_at[i] = np.linalg.inv(S) @ pose
         return info
 
+    @contextlib.contextmanager
+    def _readding(self):
+        """Frames mapped inside are re-adds after a loop: `n3_loop_readd_iters` training iterations each
+        (0: the map's own train.iters)."""
+        n = self.cfg.n3_loop_readd_iters
+        if n <= 0:
+            yield
+            return
+        self.mapper.set_iters(n)
+        try:
+            yield
+        finally:
+            self.mapper.set_iters(self.mapper.cfg.train.iters)
+
     def readd_pending(self, n: int = 1) -> float:
         """Re-add up to n queued frames at their current poses (those still in the submap being mapped;
         the others stay as their submap's move put them). Returns the seconds it took."""
@@ -240,7 +255,8 @@ class N3SlamStep:
                 break
             i = self.pending.pop(0)
             self.mapper.forget_frames([self.counter[i]])
-            self._map(i, traj[i], stay=True)
+            with self._readding():
+                self._map(i, traj[i], stay=True)
         return time.perf_counter() - t0
 
     def follow_loop(self, frame_index: int) -> dict:
@@ -257,8 +273,9 @@ class N3SlamStep:
         if mode == "rebuild" and redo:
             mapper.reset()
         removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
-        for i in redo:
-            self._map(i, traj[i])
+        with self._readding():
+            for i in redo:
+                self._map(i, traj[i])
         return self._loop_record(frame_index, mode, moves, t0, {"reintegrated": len(redo), "pairs_removed": removed},
                                  redo)
 
