@@ -152,7 +152,8 @@ def n3_slam_against_references(cfg, out: str) -> dict:
             "step": slam["step"], "tracked": [slam["tracked_ok"], slam["tracked_frames"]],
             "loop_map_s": slam["loop_map_s"], "load": [load, os.getloadavg()],
             "config": {k: getattr(cfg, k) for k in ("n3_config", "n3_track", "n3_track_min_valid", "n3_track_min_seen",
-                                                    "n3_track_young_rotation", "n3_loop", "n3_loop_min_move_m")}}
+                                                    "n3_track_young_rotation", "n3_loop", "n3_loop_min_move_m",
+                                                    "n3_loop_readd_iters")}}
 
 
 def _print_ate(ates: dict, rule: bool) -> None:
