@@ -11,9 +11,6 @@ PYTEST_ARGS ?=
 # The suite compiles into an empty XLA cache made for the run (deleted after it), as on a new machine: CI
 # measures what a new user waits. TEST_CACHE=warm keeps the per-CPU cache between runs (about half the time).
 TEST_CACHE ?= cold
-# Three pytest workers on a 2-core machine: a worker spends much of its time on one core (XLA's compiles,
-# Python, subprocesses and files), so a third keeps both cores busy (suite 974 -> 878 s on 2 cores).
-TEST_WORKERS ?= 3
 
 .PHONY: demo test install sysdeps clean
 
@@ -44,11 +41,11 @@ demo: install
 
 test: install
 ifeq ($(TEST_CACHE),warm)
-	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)
 else
 	@cache=$$(mktemp -d "$${TMPDIR:-/tmp}/jaxmap-test-cache.XXXXXX"); trap 'rm -rf "$$cache"' EXIT; \
 	echo "[make] an empty compile cache for this run: $$cache (TEST_CACHE=warm keeps ~/.cache/jaxmap's)"; \
-	JAXMAP_CACHE_DIR=$$cache $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	JAXMAP_CACHE_DIR=$$cache $(PY) -m pytest -q -n 2 --dist loadfile $(PYTEST_ARGS)
 endif
 
 clean:
