@@ -228,9 +228,10 @@ def print_signed_errors(results: dict) -> None:
     classes = [c for c in next((v for v in rows.values() if v), {})]
     if not classes:
         return
-    _print_head(f"{'signed cm':<11}" + "".join(f"{c[:10]:>11}" for c in classes))
+    w = max(11, *(len(name) + 1 for name in rows))  # (the variants' names fit 11; bench slam's maps' do not)
+    _print_head(f"{'signed cm':<{w}}" + "".join(f"{c[:10]:>11}" for c in classes))
     for name, se in rows.items():
-        print(f"{name:<11}" + "".join(f"{se.get(c, {}).get('mean_cm', np.nan):>11.2f}" for c in classes))
+        print(f"{name:<{w}}" + "".join(f"{se.get(c, {}).get('mean_cm', np.nan):>11.2f}" for c in classes))
 
 
 def print_table(results: dict) -> None:

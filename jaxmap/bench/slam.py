@@ -35,6 +35,7 @@ import os
 import numpy as np
 
 from jaxmap.bench import print_map_table
+from jaxmap.bench.n3 import print_signed_errors
 
 
 def _bench_config(args, data: str, out: str):
@@ -179,26 +180,15 @@ def _print_axes(axes: dict) -> None:
     print()
 
 
-def _print_road(recon: dict) -> None:
-    """Per map, the mean signed error (cm) of its road and sidewalk (the standard protocol's per-class
-    signed error: negative = the surface lies below the ground truth's)."""
-    rows = {k: m["signed_error_cm"] for k, m in recon.items() if m and "signed_error_cm" in m}
-    if not rows:
-        return
-    print(f"{'map: signed error cm':30s} {'road':>7s} {'sidewalk':>9s}")
-    for name, se in rows.items():
-        print(f"{name:30s} {se.get('road', {}).get('mean_cm', float('nan')):+7.2f} "
-              f"{se.get('sidewalk', {}).get('mean_cm', float('nan')):+9.2f}")
-    print()
-
-
 def _print_n3(res: dict) -> None:
     print(f"\njaxmap slam (map_kind n3) on {res['frames']} frames, {res['config']}")
     _print_ate(res["ate"], rule=False)
     if res.get("axes"):
         _print_axes(res["axes"])
     print_map_table(res["recon"])
-    _print_road(res["recon"])
+    # each map's mean signed error per class (road and sidewalk: what a low trajectory lowers), the floor first
+    print_signed_errors({name: {"metrics": m} for name, m in res["recon"].items() if m})
+    print()
     r = res["recon"]
     if r["slam (online)"] and r["GT poses (jaxmap map)"]:
         print(f"slam / GT-pose C-L1 = {r['slam (online)']['chamfer_l1_cm'] / r['GT poses (jaxmap map)']['chamfer_l1_cm']:.3f}"

@@ -248,14 +248,14 @@ class N3SlamStep:
         """Re-add up to n queued frames at their current poses (those still in the submap being mapped;
         the others stay as their submap's move put them). Returns the seconds it took."""
         t0, traj = time.perf_counter(), self.fe.trajectory()
-        for _ in range(n):
-            while self.pending and self.submap[self.pending[0]] != self.mapper.submaps.active:
-                self.pending.pop(0)
-            if not self.pending:
-                break
-            i = self.pending.pop(0)
-            self.mapper.forget_frames([self.counter[i]])
-            with self._readding():
+        with self._readding():
+            for _ in range(n):
+                while self.pending and self.submap[self.pending[0]] != self.mapper.submaps.active:
+                    self.pending.pop(0)
+                if not self.pending:
+                    break
+                i = self.pending.pop(0)
+                self.mapper.forget_frames([self.counter[i]])
                 self._map(i, traj[i], stay=True)
         return time.perf_counter() - t0
 
