@@ -243,10 +243,13 @@ def _bench_args(sub) -> None:
     p.add_argument("--suite", dest="validation_suite", action="store_true",
                    help="n3: the validation suite (7 cities: seeds, layouts, noise, real sensors' beam tables, traffic, "
                         "artifacts) on which defaults are "
-                        "chosen; rows, mean and worst; --only picks variants (default jaxmap)")
+                        "chosen; rows, mean and worst; --only picks variants (default jaxmap). slam: five 130-frame "
+                        "streets (layouts, noise, beam tables), jaxmap slam against the true-pose map on each (ATE, "
+                        "height and tilt error, C-L1 ratio, road error, loop seconds); --only names the row, --set "
+                        "its settings")
     p.add_argument("--cities", default=None,
-                   help="n3 --suite: comma-separated subset of the suite's cities (the variant's other rows in "
-                        "OUT/suite.json are kept)")
+                   help="n3 or slam --suite: comma-separated subset of the suite's cities or streets (the variant's "
+                        "other rows in OUT/suite.json or OUT/slam_suite.json are kept)")
     p.add_argument("--profile", action="store_true",
                    help="n3 --only speed: where a frame's time goes, stage by stage: the frame program under XLA's profiler "
                         "(summed by stage), what each feature costs in it, and the host's preprocessing")

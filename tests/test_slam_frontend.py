@@ -406,4 +406,4 @@ def test_frontend_city_closes_loop(noisy_city):
     assert ate_odo["max_m"] < 1.0                     # < 1.6 % of the 62 m loop
     assert fe.loops and any(r.optimized for r in results)
     assert ate_opt["rmse_m"] < 0.6 * ate_odo["rmse_m"]
-    assert all(set(r.timings) == {"odometry_s", "loop_s", "optimize_s"} for r in results)
+    assert all(set(r.timings) == {"odometry_s", "loop_s", "optimize_s", "level_s"} for r in results)

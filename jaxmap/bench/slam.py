@@ -68,6 +68,9 @@ def _write(out: str, name: str, res: dict) -> None:
 def main(args) -> int:
     from jaxmap.frame_loop import open_run_sequence
 
+    if getattr(args, "validation_suite", False):
+        from jaxmap.bench.slam_suite import main_suite
+        return main_suite(args)
     data, out = args.data, args.out
     os.makedirs(out, exist_ok=True)
     cfg = _bench_config(args, data, out)

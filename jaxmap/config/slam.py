@@ -11,6 +11,10 @@ ODOMETRY_METHODS = ("icp", "kiss_icp")
 EDGE_INFORMATION = ("isotropic", "icp")
 MAP_KINDS = ("imt", "n3")
 N3_LOOP_MODES = ("submaps", "rebuild", "moved", "none")
+# the LiDAR's levelling by its scans' vertical surfaces (`jaxmap.slam.level`), chosen on `jaxmap bench slam
+# --suite` (docs/slam.md): the whole tilt each frame, the up direction from the first frame's facades
+LIDAR_LEVEL_GAIN = 1.0
+LIDAR_LEVEL_REFERENCE_FRAMES = 10
 
 
 @dataclass(frozen=True)
@@ -139,6 +143,12 @@ class FrontEndConfig:
                                 disagrees with the odometry by much more than this is pruned. None =
                                 loops.max_correction_m, the largest correction a verified loop may make
     preference_loop_closure, edge_prune_threshold: passed to PoseGraph.optimize
+    level_gain, level_reference_frames: each frame's rotation is turned by this fraction of its scan's
+                                tilt against the up direction its vertical surfaces say (`jaxmap.slam.level`;
+                                0 = off, the default here and the depth camera's: it reads the sensor's z as
+                                the first guess of up; `lidar()`: 1.0), the up being the first frame's
+                                facades', averaged with the next frames' (at most this many in all) while
+                                its standard error is above 5 mdeg (a noisy sensor's)
     edge_information:           "isotropic" (default): each edge's information is ICP's made isotropic per
                                 block (the rotation block and the translation block each replaced by its
                                 mean eigenvalue times I, no cross terms; `isotropic_information`); "icp":
@@ -156,6 +166,8 @@ class FrontEndConfig:
     preference_loop_closure: float = 1.0  # open3d GlobalOptimizationOption.preference_loop_closure
     edge_prune_threshold: float = 0.25  # open3d: loop edges with a line-process weight below this are pruned
     edge_information: str = "isotropic"  # isotropic (ICP's, per block) | icp (open3d's, with cross terms)
+    level_gain: float = 0.0             # fraction of each frame's tilt against the facades' up turned away (0 = off)
+    level_reference_frames: int = 10    # the up: the first frame's facades, with the next ones' (at most this many) while noisy
 
     @classmethod
     def lidar(cls, **overrides) -> "FrontEndConfig":
@@ -164,7 +176,8 @@ class FrontEndConfig:
         loop search's min_gap (8 keyframes) 8 m back, within its 10 m radius, and "close a loop" with the
         scan 8 back at every frame (a pose-graph optimisation and a remap each); every 3.5 m keeps ~16
         keyframes on the small city's 62 m loop, as its 15 frames 4.7 m apart were before issue 25."""
-        base = dict(odometry=OdometryConfig.lidar(), loops=LoopConfig.lidar(), keyframe_min_translation_m=3.5)
+        base = dict(odometry=OdometryConfig.lidar(), loops=LoopConfig.lidar(), keyframe_min_translation_m=3.5,
+                    level_gain=LIDAR_LEVEL_GAIN, level_reference_frames=LIDAR_LEVEL_REFERENCE_FRAMES)
         base.update(overrides)
         return cls(**base)
 

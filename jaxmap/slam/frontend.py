@@ -24,6 +24,7 @@ import numpy as np
 
 from jaxmap.config.slam import EDGE_INFORMATION, FrontEndConfig
 from jaxmap.geometry import compose, orthonormalize, pose_change, se3_inverse
+from jaxmap.slam.level import Leveller
 from jaxmap.slam.loops import LoopResult, find_candidates, verify
 from jaxmap.slam.odometry import Scan, make_odometry
 from jaxmap.slam.posegraph import PoseGraph
@@ -93,6 +94,8 @@ class FrontEnd:
         self.loops: list[tuple[int, int]] = []  # accepted loops (candidate keyframe, current keyframe)
         self._cooldown = 0
         self._cov_since_kf = np.zeros((6, 6))     # summed covariance of the frame steps since the last keyframe
+        self.leveller = (Leveller(self.cfg.level_gain, self.cfg.level_reference_frames, self.odometry.pose)
+                         if self.cfg.level_gain > 0 else None)
 
     # ---------------------------------------------------------------------------------------------
     def keyframe_poses(self) -> np.ndarray:
@@ -140,6 +143,8 @@ class FrontEnd:
             timings["refine_s"] = time.perf_counter() - t0
             if better is not None:
                 pose, refined = self._adopt(step.pose, better), True
+        if self.leveller is not None:   # after the refinement: the tracked pose holds the map's tilt
+            pose = self._level(index, pose, scan if scan is not None else self.odometry.last, timings)
         if index > 0:
             info = step.information if step.ok else WEAK_INFORMATION
             # (+ a tiny ridge: a degenerate ICP information must not make the inverse blow up or fail)
@@ -174,6 +179,16 @@ class FrontEnd:
                 self._cooldown = cfg.loop_cooldown
         return FrameResult(index, pose.copy(), True, k, loop, optimized, self.keyframe_poses(), step.ok, timings,
                            rel, refined)
+
+    def _level(self, index: int, pose: np.ndarray, scan: Scan, timings: dict) -> np.ndarray:
+        """Frame `index`'s pose turned by the leveller (the first frame's kept: it only sets the up), made
+        the odometry's current pose (`jaxmap.slam.level`); its seconds in timings["level_s"]."""
+        t0 = time.perf_counter()
+        level = self.leveller(pose, scan.normals, turn=index > 0)
+        if index > 0:
+            pose = self._adopt(pose, level)
+        timings["level_s"] = time.perf_counter() - t0
+        return pose
 
     def _adopt(self, guess: np.ndarray, pose: np.ndarray) -> np.ndarray:
         """Make `pose` the odometry's current pose in place of its `guess`: the world correction moves

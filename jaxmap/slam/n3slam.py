@@ -336,7 +336,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
                       viewer=viewer, checkpoints=saves)
     return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
             "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
-            "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "map_s", "loop_s")),
+            "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "level_s", "map_s", "loop_s")),
             "readd_s": float(sum(r.get("readd_s", 0.0) for r in step.records)),
             "checkpoint_s": float(sum(r.get("checkpoint_s", 0.0) for r in step.records))}
 

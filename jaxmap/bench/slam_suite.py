@@ -1,0 +1,158 @@
+"""`jaxmap bench slam --suite`: `jaxmap slam` on streets scanned like real sensors, each against the map
+that `jaxmap map` builds from the same scans with the true poses.
+
+Five 130-frame streets with a loop (closed at frame ~120), each a `jaxmap synth city` of its own:
+
+    city_hdl64              the default city's layout (seed 0), KITTI's two-block HDL-64E (no table of
+                            the README reports it)
+    grid_s2_hdl64_noise2cm  street grid, seed 2, HDL-64E, 2 cm range noise
+    suburb_s3               the suburb layout, seed 3, 64 uniform beams
+    grid_s4_b32             street grid, seed 4, 32 uniform beams
+    grid_s5_vlp32           street grid, seed 5, a VLP-32C's beam table
+
+Per street and variant (`--only NAME`: a name for the row, the `--set`s its settings; default `jaxmap`,
+the shipped `city_slam`), each in its own process: `jaxmap slam city_slam` and, once per street,
+`jaxmap map city` (the true-pose map). The row: ATE, the trajectory's height error (mean, lowest) and
+tilt error (mean, deg) that ATE's rigid fit hides, the map's C-L1 (standard protocol at 10 cm) and its
+ratio to the true-pose map's, F-score, the map's mean signed error on road and sidewalk (cm), the
+main-thread seconds of the loop corrections, and seconds a frame (wall, compiling included) against
+the true-pose run's. Mean and worst over the streets; everything to OUT/slam_suite.json.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+STREETS = {
+    "city_hdl64": dict(seed=0, beams="hdl64"),
+    "grid_s2_hdl64_noise2cm": dict(seed=2, beams="hdl64", noise_m=0.02),
+    "suburb_s3": dict(seed=3, layout="suburb"),
+    "grid_s4_b32": dict(seed=4, beams=32),
+    "grid_s5_vlp32": dict(seed=5, beams="vlp32"),
+}
+
+
+def streets(root: str, only=None) -> dict:
+    """{name: directory} of the streets under root (those in `only`, default all), synthesized where
+    missing."""
+    from jaxmap.synth.city import generate_city
+
+    unknown = set(only or ()) - set(STREETS)
+    if unknown:
+        raise SystemExit(f"unknown streets {', '.join(sorted(unknown))}; choose from {', '.join(STREETS)}")
+    out = {}
+    for name, kw in STREETS.items():
+        if only and name not in only:
+            continue
+        d = os.path.join(root, name)
+        if not os.path.isfile(os.path.join(d, "poses.txt")):
+            print(f"[bench] synthesizing {name} into {d}", flush=True)
+            generate_city(d, **kw)
+        out[name] = d
+    return out
+
+
+def _run(argv: list[str], cache: str) -> dict:
+    """A jaxmap command in its own process; its summary (the last line it prints)."""
+    from jaxmap.bench import in_subprocess
+
+    res, seconds = in_subprocess(argv, cache)
+    if res.returncode != 0:
+        raise SystemExit(f"[bench] {' '.join(res.args)} failed:\n{res.stderr[-3000:]}")
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    summary["process_s"] = seconds
+    return summary
+
+
+def street_row(data: str, slam_dir: str, slam: dict, true: dict) -> dict:
+    """One street's row from the SLAM run's directory and both runs' summaries."""
+    from jaxmap.io import open_sequence
+    from jaxmap.slam.trajectory import ate, axis_errors
+
+    gt = np.asarray(open_sequence(data).poses, np.float64)
+    rows = np.loadtxt(os.path.join(slam_dir, "trajectory_kitti.txt"), ndmin=2).reshape(-1, 3, 4)
+    T = np.tile(np.eye(4), (len(rows), 1, 1))
+    T[:, :3] = rows
+    a, ax = ate(T, gt[:len(T)]), axis_errors(T, gt[:len(T)])
+    with open(os.path.join(slam_dir, "metrics.json")) as f:
+        m = json.load(f)
+    with open(os.path.join(slam_dir, "slam.json")) as f:
+        s = json.load(f)
+    se = m.get("signed_error_cm", {})
+    loops = [lp.get("map_s", 0.0) for lp in s.get("loops") or []]
+    return {"ate_cm": 100 * a["rmse_m"], "dz_mean_cm": 100 * ax["dz_mean_m"], "dz_min_cm": 100 * ax["dz_min_m"],
+            "tilt_deg": ax["tilt_mean_deg"], "chamfer_l1_cm": m["chamfer_l1_cm"], "f_score": m["f_score"],
+            "true_chamfer_l1_cm": true["metrics"]["chamfer_l1_cm"],
+            "ratio": m["chamfer_l1_cm"] / true["metrics"]["chamfer_l1_cm"],
+            "road_cm": se.get("road", {}).get("mean_cm", float("nan")),
+            "sidewalk_cm": se.get("sidewalk", {}).get("mean_cm", float("nan")),
+            "true_road_cm": true["metrics"].get("signed_error_cm", {}).get("road", {}).get("mean_cm", float("nan")),
+            "loop_s": float(s.get("loop_map_s", 0.0)), "loop_max_s": float(max(loops, default=0.0)),
+            "s_per_frame": float(s.get("wall_s_per_frame", float("nan"))),
+            "true_s_per_frame": float(true.get("wall_s_per_frame", float("nan")))}
+
+
+COLUMNS = (("ATE cm", "ate_cm", "7.2f"), ("dz mean", "dz_mean_cm", "+8.2f"), ("dz min", "dz_min_cm", "+7.2f"),
+           ("tilt deg", "tilt_deg", "9.3f"), ("C-L1 cm", "chamfer_l1_cm", "8.2f"), ("true", "true_chamfer_l1_cm", "6.2f"),
+           ("ratio", "ratio", "6.2f"), ("F %", "f_score", "7.2f"), ("road", "road_cm", "+6.2f"),
+           ("true road", "true_road_cm", "+10.2f"), ("sidewalk", "sidewalk_cm", "+9.2f"), ("loop s", "loop_s", "7.1f"), ("max loop s", "loop_max_s", "11.1f"),
+           ("s/frame", "s_per_frame", "8.2f"), ("x true", "time_ratio", "7.2f"))
+
+
+def print_rows(variant: str, rows: dict) -> None:
+    """The table: one row per street, then the mean and the worst (the largest in size; the F-score's
+    lowest)."""
+    for r in rows.values():
+        r["time_ratio"] = r["s_per_frame"] / r["true_s_per_frame"]
+    width = [int(f.lstrip("+").split(".")[0]) for _, _, f in COLUMNS]
+    head = f"{'street (' + variant + ')':<26}" + "".join(f" {h:>{w}}" for (h, _, _), w in zip(COLUMNS, width))
+    print(head)
+    print("-" * len(head))
+
+    def line(name, r):
+        return f"{name:<26}" + "".join(" " + format(r[k], f) for _, k, f in COLUMNS)
+
+    for name, r in rows.items():
+        print(line(name, r))
+    if len(rows) > 1:
+        keys = [k for _, k, _ in COLUMNS]
+        mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
+        worst = {k: float(min(r[k] for r in rows.values()) if k == "f_score" else
+                          max((r[k] for r in rows.values()), key=abs)) for k in keys}
+        print(line(f"mean ({len(rows)})", mean))
+        print(line(f"worst ({len(rows)})", worst))
+
+
+def main_suite(args) -> int:
+    """`jaxmap bench slam --suite [--only NAME] [--cities A,B] [--set K=V ...]`."""
+    root = args.data if args.data not in (None, "data/room_noisy") else "data/slam_suite"
+    only = [c.strip() for c in args.cities.split(",")] if getattr(args, "cities", None) else None
+    data = streets(root, only)
+    name = args.only or "jaxmap"
+    sets = [a for o in (args.overrides or []) for a in ("--set", o)]
+    out = args.out
+    os.makedirs(out, exist_ok=True)
+    cache = os.path.join(out, "xla_cache")
+    path = os.path.join(out, "slam_suite.json")
+    results = json.load(open(path)) if os.path.isfile(path) else {}
+    rows = results.get(name, {})
+    for street, d in data.items():
+        true_dir, slam_dir = os.path.join(out, "true", street), os.path.join(out, name, street)
+        true = results.get("true", {}).get(street)
+        if true is None:   # the true-pose map, once per street (every variant is compared with it)
+            print(f"[bench] slam suite: {street}, the true poses", flush=True)
+            true = _run(["map", "city", "--data", d, "--out", true_dir, "--no-progress", "--overwrite"], cache)
+            results.setdefault("true", {})[street] = true
+        print(f"[bench] slam suite {name}: {street}", flush=True)
+        slam = _run(["slam", "city_slam", "--data", d, "--out", slam_dir, "--no-progress", "--overwrite", *sets],
+                    cache)
+        rows[street] = street_row(d, slam_dir, slam, true)
+        results[name] = rows
+        with open(path, "w") as f:   # after every street: a stopped suite keeps what it measured
+            json.dump(results, f, indent=1)
+    print()
+    print_rows(name, {s: rows[s] for s in STREETS if s in rows})
+    print(f"\n[bench] written to {path}")
+    return 0
