@@ -1,5 +1,8 @@
-"""`jaxmap bench n3 --suite` bookkeeping: rows merge city by city, twins compare, subsets print."""
+"""`jaxmap bench n3 --suite` bookkeeping: rows merge city by city, twins compare, subsets print; `jaxmap bench
+slam --suite`'s rows."""
 import json
+
+import pytest
 
 from jaxmap.bench import n3_suite as S
 
@@ -40,3 +43,35 @@ def test_a_traffic_city_from_an_older_generator_is_made_again(tmp_path):
         (d / "meta.json").write_text(json.dumps({"traffic": traffic}))
         assert S._older_traffic(str(d), kw) == older, traffic
     assert not S._older_traffic(str(d), S.SUITE["grid_s1_hdl64"])
+
+
+def test_a_slam_street_row_reads_the_run_and_compares_it_with_the_true_pose_map(small_city, tmp_path, capsys):
+    """`jaxmap bench slam --suite`'s row from a run's files: a trajectory 2 cm high and tilted 0.1 deg
+    reads as such, the ratio is SLAM's C-L1 over the true-pose map's, the loop seconds are summed and their
+    largest kept; the table's worst row takes the largest size, the lowest F-score."""
+    import numpy as np
+
+    from jaxmap.bench import slam_suite
+    from jaxmap.io import open_sequence
+    from jaxmap.slam.level import rotvec_matrix
+
+    gt = np.asarray(open_sequence(str(small_city)).poses, np.float64)
+    est = gt.copy()
+    est[:, 2, 3] += 0.02
+    est[:, :3, :3] = rotvec_matrix(np.radians([0.1, 0, 0])) @ est[:, :3, :3]
+    run = tmp_path / "run"
+    run.mkdir()
+    np.savetxt(run / "trajectory_kitti.txt", est[:, :3].reshape(len(est), 12))
+    road = {"road": {"mean_cm": 2.1}, "sidewalk": {"mean_cm": -0.4}}
+    (run / "metrics.json").write_text(json.dumps({"chamfer_l1_cm": 3.3, "f_score": 90.0, "signed_error_cm": road}))
+    (run / "slam.json").write_text(json.dumps({"loop_map_s": 7.0, "loops": [{"map_s": 5.0}, {"map_s": 2.0}],
+                                              "wall_s_per_frame": 1.2}))
+    true = {"metrics": {"chamfer_l1_cm": 3.0, "signed_error_cm": {"road": {"mean_cm": 0.3}}}, "wall_s_per_frame": 0.8}
+    r = slam_suite.street_row(str(small_city), str(run), {}, true)
+    assert r["dz_mean_cm"] == pytest.approx(2.0) and r["dz_min_cm"] == pytest.approx(2.0)
+    assert r["tilt_deg"] == pytest.approx(0.1, abs=1e-6) and r["ratio"] == pytest.approx(1.1)
+    assert (r["road_cm"], r["true_road_cm"], r["loop_s"], r["loop_max_s"]) == (2.1, 0.3, 7.0, 5.0)
+    other = dict(r, ratio=1.3, f_score=95.0, dz_mean_cm=-3.0)
+    slam_suite.print_rows("x", {"a": r, "b": other})
+    worst = [line for line in capsys.readouterr().out.splitlines() if line.startswith("worst")][0].split()
+    assert worst[3] == "-3.00" and worst[8] == "1.30" and worst[9] == "90.00"   # dz mean, ratio, F

@@ -140,3 +140,36 @@ def test_the_up_is_the_first_frames_facades_when_precise_and_an_average_when_noi
     assert lev.frames == 10
     assert np.arccos(lev.up @ up) < 0.5 * np.mean([np.arccos(u @ up) for u, _ in single])
 
+
+
+def test_a_loop_edge_keeps_its_heading_and_position_and_takes_the_levelled_tilt():
+    """A loop edge whose registration is 0.15 deg off in tilt (and 0.3 deg in heading): where both
+    keyframes' facades are precise, the levelled front end puts keyframe k's up where its facades put
+    it, keeps the edge's heading (the loop's to correct) and its translation."""
+    P_c, P_k = np.eye(4), np.eye(4)
+    P_c[:3, :3] = rotvec_matrix(np.radians([0, 0, 20.0]))
+    P_k[:3, :3] = rotvec_matrix(np.radians([0, 0, 110.0]))
+    P_k[:3, 3] = [3.0, -1.0, 0.02]
+    true_rel = np.linalg.inv(P_c) @ P_k
+    bad = true_rel.copy()   # registered: tilted 0.15 deg about k's x axis, heading 0.3 deg off
+    bad[:3, :3] = true_rel[:3, :3] @ rotvec_matrix(np.radians([0.15, 0, 0.3]))
+    fe = FrontEnd(FrontEndConfig.lidar(level_gain=1.0), initial_pose=np.eye(4))
+    fixed = fe._levelled_loop(P_c, P_k, bad)
+    R_world = P_c[:3, :3] @ fixed[:3, :3]
+    assert tilt_deg(R_world, P_k[:3, :3]) < 1e-6
+    assert tilt_deg(P_c[:3, :3] @ bad[:3, :3], P_k[:3, :3]) == pytest.approx(0.15, abs=1e-3)
+    heading = lambda R: np.degrees(np.arctan2(R[1, 0], R[0, 0]))  # noqa: E731
+    assert heading(R_world) - heading(P_k[:3, :3]) == pytest.approx(0.3, abs=1e-3)
+    assert np.array_equal(fixed[:3, 3], bad[:3, 3])
+
+
+def test_only_a_precisely_levelled_frame_may_set_a_loops_tilt():
+    """The first frame (its pose given) and a scan of clean facades are precise; a scan of noisy ones
+    (3 deg of normal spread) and one without facades are not."""
+    rng = np.random.default_rng(6)
+    lev = Leveller(gain=1.0, reference_frames=1, first_pose=np.eye(4))
+    lev(np.eye(4), street_normals(rng), turn=False)
+    lev(np.eye(4), street_normals(rng), turn=True)
+    lev(np.eye(4), street_normals(rng, n=150, spread_deg=3.0), turn=True)
+    lev(np.eye(4), np.tile([0.0, 0.0, 1.0], (1000, 1)), turn=True)
+    assert [lev.precise(i) for i in range(4)] == [True, True, False, False]

@@ -17,6 +17,30 @@ def in_subprocess(argv: list[str], cache_dir: str, module: str = "jaxmap.cli") -
     return res, time.perf_counter() - t0
 
 
+def synthesized(root: str, specs: dict, only=None, stale=None, what: str = "scenes") -> dict:
+    """{name: directory} of the `jaxmap synth city` scenes `specs` ({name: generate_city keywords}) under
+    root (those named in `only`, default all), synthesized where missing or where `stale(dir, kw)` says
+    the one there is an older generator's. An unknown name in `only` stops the bench, naming the choices."""
+    from jaxmap.synth.city import generate_city
+
+    unknown = set(only or ()) - set(specs)
+    if unknown:
+        raise SystemExit(f"unknown {what} {', '.join(sorted(unknown))}; choose from {', '.join(specs)}")
+    out = {}
+    for name, kw in specs.items():
+        if only and name not in only:
+            continue
+        d = os.path.join(root, name)
+        if not os.path.isfile(os.path.join(d, "poses.txt")):
+            print(f"[bench] synthesizing {name} into {d}", flush=True)
+            generate_city(d, **kw)
+        elif stale is not None and stale(d, kw):
+            print(f"[bench] synthesizing {name} into {d} again (it is an older generator's)", flush=True)
+            generate_city(d, **kw)
+        out[name] = d
+    return out
+
+
 def default_city(data: str) -> None:
     """The default city (`jaxmap synth city`, seed 0, 130 frames) in directory `data`, synthesized when it is
     not there (the scene of `jaxmap bench n3` and `jaxmap bench path`)."""

@@ -51,25 +51,10 @@ KEYS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_
 
 def suite_cities(root: str, only=None) -> dict:
     """{name: directory} of the suite under root (the cities named in `only`, default all),
-    synthesized where missing."""
-    from jaxmap.synth.city import generate_city
+    synthesized where missing (or where their traffic is an older generator's)."""
+    from jaxmap.bench import synthesized
 
-    out = {}
-    unknown = set(only or ()) - set(SUITE)
-    if unknown:
-        raise SystemExit(f"unknown suite cities {', '.join(sorted(unknown))}; choose from {', '.join(SUITE)}")
-    for name, kw in SUITE.items():
-        if only and name not in only:
-            continue
-        d = os.path.join(root, name)
-        if not os.path.isfile(os.path.join(d, "poses.txt")):
-            print(f"[bench] synthesizing {name} into {d}", flush=True)
-            generate_city(d, **kw)
-        elif _older_traffic(d, kw):
-            print(f"[bench] synthesizing {name} into {d} again (its traffic is an older generator's)", flush=True)
-            generate_city(d, **kw)
-        out[name] = d
-    return out
+    return synthesized(root, SUITE, only, stale=_older_traffic, what="suite cities")
 
 
 def _older_traffic(d: str, kw: dict) -> bool:

@@ -25,33 +25,19 @@ import os
 
 import numpy as np
 
-STREETS = {
-    "city_hdl64": dict(seed=0, beams="hdl64"),
-    "grid_s2_hdl64_noise2cm": dict(seed=2, beams="hdl64", noise_m=0.02),
-    "suburb_s3": dict(seed=3, layout="suburb"),
-    "grid_s4_b32": dict(seed=4, beams=32),
-    "grid_s5_vlp32": dict(seed=5, beams="vlp32"),
-}
+from jaxmap.bench.n3_suite import SUITE
+
+# the default city's layout with the HDL-64E, and four of `jaxmap bench n3 --suite`'s clean cities
+STREETS = {"city_hdl64": dict(seed=0, beams="hdl64"),
+           **{name: SUITE[name] for name in ("grid_s2_hdl64_noise2cm", "suburb_s3", "grid_s4_b32", "grid_s5_vlp32")}}
 
 
 def streets(root: str, only=None) -> dict:
     """{name: directory} of the streets under root (those in `only`, default all), synthesized where
     missing."""
-    from jaxmap.synth.city import generate_city
+    from jaxmap.bench import synthesized
 
-    unknown = set(only or ()) - set(STREETS)
-    if unknown:
-        raise SystemExit(f"unknown streets {', '.join(sorted(unknown))}; choose from {', '.join(STREETS)}")
-    out = {}
-    for name, kw in STREETS.items():
-        if only and name not in only:
-            continue
-        d = os.path.join(root, name)
-        if not os.path.isfile(os.path.join(d, "poses.txt")):
-            print(f"[bench] synthesizing {name} into {d}", flush=True)
-            generate_city(d, **kw)
-        out[name] = d
-    return out
+    return synthesized(root, STREETS, only, what="streets")
 
 
 def _run(argv: list[str], cache: str) -> dict:

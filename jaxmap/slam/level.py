@@ -107,6 +107,8 @@ class Leveller:
         self.weight = 0.0                # their summed weight (1 / the reference's stderr^2)
         self.frames = 0                  # frames seen while the reference was open
         self.applied: list[float] = []   # per frame: the tilt turned away (deg)
+        self.stderr: list[float] = []    # per frame: its tilt's standard error (radians; the first frame's
+                                         # pose is the given one: 0; inf: not measured)
 
     @property
     def up(self) -> np.ndarray:
@@ -133,10 +135,17 @@ class Leveller:
                 self.up_sum, self.weight = self.up_sum + m[0] / m[1] ** 2, self.weight + 1.0 / m[1] ** 2
         if self.gain <= 0 or not turn:
             self.applied.append(0.0)
+            self.stderr.append(0.0 if not turn else float("inf"))
             return pose
         lv = level_rotation(normals_s, pose[:3, :3], self.up)
         w = self.gain * lv.rotvec
         out = pose.copy()
         out[:3, :3] = rotvec_matrix(w) @ pose[:3, :3]
         self.applied.append(float(np.degrees(np.linalg.norm(w))))
+        self.stderr.append(float(lv.stderr) if self.gain >= 1.0 else float("inf"))
         return out
+
+    def precise(self, frame: int) -> bool:
+        """Frame `frame`'s levelled tilt is known as well as the up is asked to be (its standard error
+        below REFERENCE_STDERR_DEG): the clean streets' scans (~0.3 mdeg), not the noisy ones' (~17)."""
+        return self.stderr[frame] < np.radians(REFERENCE_STDERR_DEG)
