@@ -81,6 +81,8 @@ class FrameResult:
 class FrontEnd:
     """Streaming front end; see the module docstring. `FrontEnd(cfg, initial_pose)`, then `add_frame` per scan."""
 
+    leveller: Leveller | None = None   # (a front end pickled before levelling existed resumes without it)
+
     def __init__(self, cfg: FrontEndConfig | None = None, initial_pose: np.ndarray | None = None):
         self.cfg = cfg or FrontEndConfig()
         if self.cfg.edge_information not in EDGE_INFORMATION:
