@@ -239,7 +239,7 @@ class FrontEnd:
         off in tilt on the 32-beam street, and the pose graph spread that over the whole chain back to
         the loop's start (levelled, the front end alone: every frame within 0.025 deg before the loop,
         0.02-0.15 deg after it; docs/slam.md). Where one scan's facades are noisy (2 cm range noise:
-        50-110 mdeg) the registration's tilt is the better one and is kept."""
+        ~80 mdeg) the registration's tilt is the better one and is kept."""
         up = self.leveller.up
         R_loop = P_c[:3, :3] @ T_rel[:3, :3]                 # keyframe k's world rotation as the loop says
         a, b = R_loop @ (P_k[:3, :3].T @ up), up           # where the loop puts k's up, where its facades do
