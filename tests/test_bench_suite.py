@@ -67,7 +67,7 @@ def test_a_slam_street_row_reads_the_run_and_compares_it_with_the_true_pose_map(
     (run / "slam.json").write_text(json.dumps({"loop_map_s": 7.0, "loops": [{"map_s": 5.0}, {"map_s": 2.0}],
                                               "wall_s_per_frame": 1.2}))
     true = {"metrics": {"chamfer_l1_cm": 3.0, "signed_error_cm": {"road": {"mean_cm": 0.3}}}, "wall_s_per_frame": 0.8}
-    r = slam_suite.street_row(str(small_city), str(run), {}, true)
+    r = slam_suite.street_row(str(small_city), str(run), true)
     assert r["dz_mean_cm"] == pytest.approx(2.0) and r["dz_min_cm"] == pytest.approx(2.0)
     assert r["tilt_deg"] == pytest.approx(0.1, abs=1e-6) and r["ratio"] == pytest.approx(1.1)
     assert (r["road_cm"], r["true_road_cm"], r["loop_s"], r["loop_max_s"]) == (2.1, 0.3, 7.0, 5.0)

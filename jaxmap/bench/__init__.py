@@ -17,6 +17,19 @@ def in_subprocess(argv: list[str], cache_dir: str, module: str = "jaxmap.cli") -
     return res, time.perf_counter() - t0
 
 
+def command_summary(argv: list[str], cache_dir: str) -> dict:
+    """A jaxmap command (`in_subprocess`); its summary, the last line it prints, with `process_s` its
+    seconds. A failed command stops the bench with its stderr's end."""
+    import json
+
+    res, seconds = in_subprocess(argv, cache_dir)
+    if res.returncode != 0:
+        raise SystemExit(f"[bench] {' '.join(res.args)} failed:\n{res.stderr[-3000:]}")
+    summary = json.loads(res.stdout.strip().splitlines()[-1])
+    summary["process_s"] = seconds
+    return summary
+
+
 def synthesized(root: str, specs: dict, only=None, stale=None, what: str = "scenes") -> dict:
     """{name: directory} of the `jaxmap synth city` scenes `specs` ({name: generate_city keywords}) under
     root (those named in `only`, default all), synthesized where missing or where `stale(dir, kw)` says

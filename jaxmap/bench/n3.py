@@ -47,18 +47,14 @@ COLS = ("accuracy_cm", "completion_cm", "chamfer_l1_cm", "completion_ratio", "f_
 
 def map_in_subprocess(data: str, out: str, cache_dir: str, overrides: list[str], evaluate: bool = True) -> dict:
     """`jaxmap map configs/city.yaml` in a fresh process with its own compile cache; its summary."""
-    from jaxmap.bench import in_subprocess
+    from jaxmap.bench import command_summary
     from jaxmap.runs.n3 import city_config_path
 
     argv = ["map", city_config_path(), "--data", data, "--out", out, "--no-progress", "--overwrite"] + [
         a for o in overrides for a in ("--set", o)]
     if not evaluate:
         argv += ["--no-mesh"]
-    res, seconds = in_subprocess(argv, cache_dir)
-    if res.returncode != 0:
-        raise SystemExit(f"[bench] {' '.join(res.args)} failed:\n{res.stderr[-3000:]}")
-    summary = json.loads(res.stdout.strip().splitlines()[-1])
-    summary["process_s"] = seconds
+    summary = command_summary(argv, cache_dir)
     with open(os.path.join(out, "timing.json")) as f:
         summary["frames"] = json.load(f)["frames"]
     return summary

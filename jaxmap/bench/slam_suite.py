@@ -40,58 +40,44 @@ def streets(root: str, only=None) -> dict:
     return synthesized(root, STREETS, only, what="streets")
 
 
-def _run(argv: list[str], cache: str) -> dict:
-    """A jaxmap command in its own process; its summary (the last line it prints)."""
-    from jaxmap.bench import in_subprocess
-
-    res, seconds = in_subprocess(argv, cache)
-    if res.returncode != 0:
-        raise SystemExit(f"[bench] {' '.join(res.args)} failed:\n{res.stderr[-3000:]}")
-    summary = json.loads(res.stdout.strip().splitlines()[-1])
-    summary["process_s"] = seconds
-    return summary
-
-
-def street_row(data: str, slam_dir: str, slam: dict, true: dict) -> dict:
-    """One street's row from the SLAM run's directory and both runs' summaries."""
+def street_row(data: str, slam_dir: str, true: dict) -> dict:
+    """One street's row from the SLAM run's directory and the true-pose run's summary."""
     from jaxmap.io import open_sequence
-    from jaxmap.slam.trajectory import ate, axis_errors
+    from jaxmap.slam.trajectory import ate, axis_errors, read_pose_snapshot
 
     gt = np.asarray(open_sequence(data).poses, np.float64)
-    rows = np.loadtxt(os.path.join(slam_dir, "trajectory_kitti.txt"), ndmin=2).reshape(-1, 3, 4)
-    T = np.tile(np.eye(4), (len(rows), 1, 1))
-    T[:, :3] = rows
+    T = read_pose_snapshot(os.path.join(slam_dir, "trajectory_kitti.txt"))
     a, ax = ate(T, gt[:len(T)]), axis_errors(T, gt[:len(T)])
     with open(os.path.join(slam_dir, "metrics.json")) as f:
         m = json.load(f)
     with open(os.path.join(slam_dir, "slam.json")) as f:
         s = json.load(f)
-    se = m.get("signed_error_cm", {})
+    nan = float("nan")
+    se, true_se = m.get("signed_error_cm", {}), true["metrics"].get("signed_error_cm", {})
     loops = [lp.get("map_s", 0.0) for lp in s.get("loops") or []]
+    per_frame, true_per_frame = float(s.get("wall_s_per_frame", nan)), float(true.get("wall_s_per_frame", nan))
     return {"ate_cm": 100 * a["rmse_m"], "dz_mean_cm": 100 * ax["dz_mean_m"], "dz_min_cm": 100 * ax["dz_min_m"],
             "tilt_deg": ax["tilt_mean_deg"], "chamfer_l1_cm": m["chamfer_l1_cm"], "f_score": m["f_score"],
             "true_chamfer_l1_cm": true["metrics"]["chamfer_l1_cm"],
             "ratio": m["chamfer_l1_cm"] / true["metrics"]["chamfer_l1_cm"],
-            "road_cm": se.get("road", {}).get("mean_cm", float("nan")),
-            "sidewalk_cm": se.get("sidewalk", {}).get("mean_cm", float("nan")),
-            "true_road_cm": true["metrics"].get("signed_error_cm", {}).get("road", {}).get("mean_cm", float("nan")),
+            "road_cm": se.get("road", {}).get("mean_cm", nan),
+            "sidewalk_cm": se.get("sidewalk", {}).get("mean_cm", nan),
+            "true_road_cm": true_se.get("road", {}).get("mean_cm", nan),
             "loop_s": float(s.get("loop_map_s", 0.0)), "loop_max_s": float(max(loops, default=0.0)),
-            "s_per_frame": float(s.get("wall_s_per_frame", float("nan"))),
-            "true_s_per_frame": float(true.get("wall_s_per_frame", float("nan")))}
+            "s_per_frame": per_frame, "true_s_per_frame": true_per_frame, "time_ratio": per_frame / true_per_frame}
 
 
 COLUMNS = (("ATE cm", "ate_cm", "7.2f"), ("dz mean", "dz_mean_cm", "+8.2f"), ("dz min", "dz_min_cm", "+7.2f"),
-           ("tilt deg", "tilt_deg", "9.3f"), ("C-L1 cm", "chamfer_l1_cm", "8.2f"), ("true", "true_chamfer_l1_cm", "6.2f"),
+           ("tilt deg", "tilt_deg", "9.3f"), ("C-L1 cm", "chamfer_l1_cm", "8.2f"),
+           ("true", "true_chamfer_l1_cm", "6.2f"),
            ("ratio", "ratio", "6.2f"), ("F %", "f_score", "7.2f"), ("road", "road_cm", "+6.2f"),
-           ("true road", "true_road_cm", "+10.2f"), ("sidewalk", "sidewalk_cm", "+9.2f"), ("loop s", "loop_s", "7.1f"), ("max loop s", "loop_max_s", "11.1f"),
-           ("s/frame", "s_per_frame", "8.2f"), ("x true", "time_ratio", "7.2f"))
+           ("true road", "true_road_cm", "+10.2f"), ("sidewalk", "sidewalk_cm", "+9.2f"), ("loop s", "loop_s", "7.1f"),
+           ("max loop s", "loop_max_s", "11.1f"), ("s/frame", "s_per_frame", "8.2f"), ("x true", "time_ratio", "7.2f"))
 
 
 def print_rows(variant: str, rows: dict) -> None:
     """The table: one row per street, then the mean and the worst (the largest in size; the F-score's
     lowest)."""
-    for r in rows.values():
-        r["time_ratio"] = r["s_per_frame"] / r["true_s_per_frame"]
     width = [int(f.lstrip("+").split(".")[0]) for _, _, f in COLUMNS]
     head = f"{'street (' + variant + ')':<26}" + "".join(f" {h:>{w}}" for (h, _, _), w in zip(COLUMNS, width))
     print(head)
@@ -113,6 +99,8 @@ def print_rows(variant: str, rows: dict) -> None:
 
 def main_suite(args) -> int:
     """`jaxmap bench slam --suite [--only NAME] [--cities A,B] [--set K=V ...]`."""
+    from jaxmap.bench import command_summary
+
     root = args.data if args.data not in (None, "data/room_noisy") else "data/slam_suite"
     only = [c.strip() for c in args.cities.split(",")] if getattr(args, "cities", None) else None
     data = streets(root, only)
@@ -122,19 +110,23 @@ def main_suite(args) -> int:
     os.makedirs(out, exist_ok=True)
     cache = os.path.join(out, "xla_cache")
     path = os.path.join(out, "slam_suite.json")
-    results = json.load(open(path)) if os.path.isfile(path) else {}
+    results = {}
+    if os.path.isfile(path):
+        with open(path) as f:
+            results = json.load(f)
     rows = results.get(name, {})
     for street, d in data.items():
         true_dir, slam_dir = os.path.join(out, "true", street), os.path.join(out, name, street)
         true = results.get("true", {}).get(street)
         if true is None:   # the true-pose map, once per street (every variant is compared with it)
             print(f"[bench] slam suite: {street}, the true poses", flush=True)
-            true = _run(["map", "city", "--data", d, "--out", true_dir, "--no-progress", "--overwrite"], cache)
+            true = command_summary(["map", "city", "--data", d, "--out", true_dir, "--no-progress", "--overwrite"],
+                                   cache)
             results.setdefault("true", {})[street] = true
         print(f"[bench] slam suite {name}: {street}", flush=True)
-        slam = _run(["slam", "city_slam", "--data", d, "--out", slam_dir, "--no-progress", "--overwrite", *sets],
-                    cache)
-        rows[street] = street_row(d, slam_dir, slam, true)
+        command_summary(["slam", "city_slam", "--data", d, "--out", slam_dir, "--no-progress", "--overwrite", *sets],
+                        cache)
+        rows[street] = street_row(d, slam_dir, true)
         results[name] = rows
         with open(path, "w") as f:   # after every street: a stopped suite keeps what it measured
             json.dump(results, f, indent=1)

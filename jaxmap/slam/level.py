@@ -106,7 +106,6 @@ class Leveller:
         self.up_sum = np.zeros(3)        # the reference frames' ups, each weighted by 1 / stderr^2
         self.weight = 0.0                # their summed weight (1 / the reference's stderr^2)
         self.frames = 0                  # frames seen while the reference was open
-        self.applied: list[float] = []   # per frame: the tilt turned away (deg)
         self.stderr: list[float] = []    # per frame: its tilt's standard error (radians; the first frame's
                                          # pose is the given one: 0; inf: not measured)
 
@@ -134,14 +133,12 @@ class Leveller:
             if m is not None and np.isfinite(m[1]) and m[1] > 0:
                 self.up_sum, self.weight = self.up_sum + m[0] / m[1] ** 2, self.weight + 1.0 / m[1] ** 2
         if self.gain <= 0 or not turn:
-            self.applied.append(0.0)
             self.stderr.append(0.0 if not turn else float("inf"))
             return pose
         lv = level_rotation(normals_s, pose[:3, :3], self.up)
         w = self.gain * lv.rotvec
         out = pose.copy()
         out[:3, :3] = rotvec_matrix(w) @ pose[:3, :3]
-        self.applied.append(float(np.degrees(np.linalg.norm(w))))
         self.stderr.append(float(lv.stderr) if self.gain >= 1.0 else float("inf"))
         return out
 
