@@ -67,11 +67,33 @@ def test_a_slam_street_row_reads_the_run_and_compares_it_with_the_true_pose_map(
     (run / "slam.json").write_text(json.dumps({"loop_map_s": 7.0, "loops": [{"map_s": 5.0}, {"map_s": 2.0}],
                                               "wall_s_per_frame": 1.2}))
     true = {"metrics": {"chamfer_l1_cm": 3.0, "signed_error_cm": {"road": {"mean_cm": 0.3}}}, "wall_s_per_frame": 0.8}
-    r = slam_suite.street_row(str(small_city), str(run), true)
+    r = slam_suite.street_row(str(small_city), str(run), true, {"metrics": {"chamfer_l1_cm": 3.15}})
+    assert r["offline_ratio"] == pytest.approx(1.05)
     assert r["dz_mean_cm"] == pytest.approx(2.0) and r["dz_min_cm"] == pytest.approx(2.0)
     assert r["tilt_deg"] == pytest.approx(0.1, abs=1e-6) and r["ratio"] == pytest.approx(1.1)
     assert (r["road_cm"], r["true_road_cm"], r["loop_s"], r["loop_max_s"]) == (2.1, 0.3, 7.0, 5.0)
     other = dict(r, ratio=1.3, f_score=95.0, dz_mean_cm=-3.0)
     slam_suite.print_rows("x", {"a": r, "b": other})
     worst = [line for line in capsys.readouterr().out.splitlines() if line.startswith("worst")][0].split()
-    assert worst[3] == "-3.00" and worst[8] == "1.30" and worst[9] == "90.00"   # dz mean, ratio, F
+    assert worst[4] == "-3.00" and worst[9] == "1.30" and worst[12] == "90.00"   # dz mean, ratio, F
+
+
+def test_the_offline_street_is_the_street_at_the_slam_poses(small_city, tmp_path):
+    """The offline map's sequence: the same scans (linked), and poses that read back as the SLAM run's
+    LiDAR trajectory through the street's non-identity calibration (camera poses in poses.txt)."""
+    import numpy as np
+
+    from jaxmap.bench import slam_suite
+    from jaxmap.io import open_sequence
+    from jaxmap.slam.level import rotvec_matrix
+
+    seq = open_sequence(str(small_city))
+    est = np.asarray(seq.poses, np.float64).copy()
+    est[:, :3, 3] += [0.05, -0.02, 0.03]
+    est[:, :3, :3] = rotvec_matrix(np.radians([0.2, -0.1, 1.0])) @ est[:, :3, :3]
+    run = tmp_path / "run"
+    run.mkdir()
+    np.savetxt(run / "trajectory_kitti.txt", est[:, :3].reshape(len(est), 12))
+    off = open_sequence(slam_suite.offline_street(str(small_city), str(run), str(tmp_path / "off")))
+    assert np.allclose(off.poses, est, atol=1e-9)
+    assert np.array_equal(off[3].points, seq[3].points)

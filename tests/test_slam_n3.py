@@ -92,8 +92,11 @@ def test_online_n3_map_follows_the_loop_correction(small_noisy_city, tmp_path):
     out = run_slam(cfg, str(tmp_path / "run"), progress=False)
     assert out["map_kind"] == "n3" and out["frames"] == 64
     assert out["ate_slam"]["rmse_m"] < 0.95 * out["ate_odometry"]["rmse_m"], (out["ate_slam"], out["ate_odometry"])
+    # the frames the loop moved are queued, not re-added at the loop (it took the main thread 0.0 s), and
+    # re-added after the next frames (the last frame re-adds those left), each with its old pairs removed
     first = out["loops"][0]
-    assert first["reintegrated"] >= 3 and first["pairs_removed"] > 0, first
+    assert first["queued"] >= 3 and first["map_s"] < 1.0, first
+    assert out["loop_readds"] >= first["queued"] and out["loop_readd_pairs_removed"] > 0, out
     assert out["metrics"]["chamfer_l1_cm"] < 6.0, out["metrics"]
     fit = _frame_fit(tmp_path / "run", small_noisy_city, n3cfg)
     assert fit.max() < 0.019, fit

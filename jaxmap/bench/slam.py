@@ -204,11 +204,16 @@ def _print_n3(res: dict) -> None:
     print(f"slam medians per frame: odometry {st['median_odometry_s']:.2f} s, tracking {st['median_refine_s']:.2f} s, "
           f"N3 frame {st['median_map_s']:.2f} s, loop search {st['median_loop_s']:.2f} s; tracked ok "
           f"{res['tracked'][0]} of {res['tracked'][1]}")
-    moved = [lp for lp in res["loops"] if lp["reintegrated"]]
-    print(f"{len(res['loops'])} loops; the map followed {len(moved)} of them in {res['loop_map_s']:.1f} s in all")
+    # a loop re-integrates its frames at once (rebuild, moved with n3_loop_readd_per_frame 0) or queues
+    # them for the next frames (moved, submaps)
+    redo = lambda lp: lp.get("reintegrated", 0) + lp.get("queued", 0)  # noqa: E731
+    moved = [lp for lp in res["loops"] if redo(lp)]
+    print(f"{len(res['loops'])} loops; the map followed {len(moved)} of them in {res['loop_map_s']:.1f} s of the "
+          f"main thread in all")
     for lp in moved:
-        print(f"  loop at frame {lp['frame']}: frames moved up to {100 * lp['max_move_m']:.1f} cm, {lp['reintegrated']} "
-              f"of {lp['frames']} re-integrated ({lp['mode']}) in {lp['map_s']:.1f} s")
+        how = "queued" if "queued" in lp else "re-integrated"
+        print(f"  loop at frame {lp['frame']}: frames moved up to {100 * lp['max_move_m']:.1f} cm, {redo(lp)} "
+              f"of {lp['frames']} {how} ({lp['mode']}) in {lp['map_s']:.1f} s")
 
 
 KINECT_ROOM = "data/room300_kinect"

@@ -219,6 +219,9 @@ class SlamConfig:
                                       # frames of the submap being mapped that moved more than this against it
     n3_loop_readd_iters: int = 0      # n3: training iterations of a frame re-added after a loop (moved, submaps);
                                       # 0: the map's train.iters, as a new frame (a re-add costs a frame's time)
+    n3_loop_readd_per_frame: int = 1  # n3 moved (and submaps): frames a loop moved are re-added this many after each
+                                      # of the next frames, largest move first (0: moved re-adds all at the loop,
+                                      # a stall of the main thread; the last frame re-adds those left)
     n3_set: list = field(default_factory=list)  # overrides of n3_config's keys ("section.key=value"): with map_kind
                                       # n3 the map's settings are n3_config's, not this file's preprocess/map/
                                       # mesh/eval (`jaxmap slam --set n3.train.iters=20` appends one)
@@ -239,7 +242,8 @@ class SlamConfig:
                     "mesh_at_loops": "mesh_at_loops meshes the imt map at loops; with map_kind n3 it is not used"}
         why = f"{{}} is read with map_kind n3 only (this run's map_kind is {self.map_kind})"
         out = {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_track_min_seen",
-                                            "n3_track_young_rotation", "n3_loop", "n3_loop_min_move_m", "n3_loop_readd_iters", "n3_submap_m",
+                                            "n3_track_young_rotation", "n3_loop", "n3_loop_min_move_m", "n3_loop_readd_iters",
+                                            "n3_loop_readd_per_frame", "n3_submap_m",
                                             "checkpoint_every")}
         if not self.n3_config:
             out["n3_set"] = "n3_set sets keys of n3_config's N3 map, and this run has none (n3_config is empty)"

@@ -16,10 +16,12 @@ Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames
      one grid); the frames of the submap being mapped that still moved against it by more than
      `n3_loop_min_move_m` are re-added, one after each of the next frames (in the background of the loop,
      not all at once); `rebuild` empties the map and integrates every frame so far again at its
-     optimised pose (when any frame moved more than `n3_loop_min_move_m`); `moved` removes the stored training pairs of
-     the frames whose position moved more than that (`N3Mapper.forget_frames`) and adds those frames
-     again, into the map as it is; `none` leaves the map as mapped (an ablation). docs/slam.md has the
-     measurements that chose between them.
+     optimised pose (when any frame moved more than `n3_loop_min_move_m`); `moved` queues the frames
+     whose position moved more than that, largest move first, and re-adds `n3_loop_readd_per_frame` of
+     them after each of the next frames (a re-add removes the frame's stored training pairs,
+     `N3Mapper.forget_frames`, and adds the frame again at its optimised pose; 0: all of them at the
+     loop, which stalled the main thread 27-42 s on the suite's streets); `none` leaves the map as
+     mapped (an ablation). docs/slam.md has the measurements that chose between them.
 The preprocessed scans (sensor frame) of every frame are kept for step 4, one file a frame in the run's
 slam_scans/ (`ScanStore`: ~1.5 MB a frame, two in memory).
 
@@ -155,6 +157,8 @@ class N3SlamStep:
     """The frame-loop step of `map_kind: n3` (see the module docstring).
     track: fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
 
+    readds = pairs_removed = 0   # (a step pickled before these were counted resumes with them at 0)
+
     def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None, viewer=None,
                  scans: ScanStore | None = None):
         self.cfg, self.mapper, self.track, self.viewer = cfg, mapper, track, viewer
@@ -164,7 +168,9 @@ class N3SlamStep:
                                                  # submap's frame with n3_loop submaps, else the world's)
         self.counter: list[int] = []             # per frame: its number in its map (pairs carry it)
         self.submap: list[int] = []              # per frame: its submap (0: one grid)
-        self.pending: list[int] = []             # n3_loop submaps: frames to re-add, one after each frame
+        self.pending: list[int] = []             # frames a loop moved, to re-add (n3_loop_readd_per_frame a frame)
+        self.readds = 0                          # frames re-added after loops, and the old pairs they removed
+        self.pairs_removed = 0
         self.last = np.inf                       # the position of the sequence's last frame (run_n3_frontend)
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
         self.loops: list[dict] = []
@@ -212,8 +218,9 @@ class N3SlamStep:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
                 show_loop(self.viewer, self.fe, r)
-            if self.pending:  # one a frame; the last frame re-adds those left (the map is finished with it)
-                record["readd_s"] = self.readd_pending(len(self.pending) if frame.position >= self.last else 1)
+            if self.pending:  # n3_loop_readd_per_frame a frame; the last frame re-adds those left
+                n = len(self.pending) if frame.position >= self.last else max(1, self.cfg.n3_loop_readd_per_frame)
+                record["readd_s"] = self.readd_pending(n)
             self.records.append(record)
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
@@ -248,15 +255,17 @@ class N3SlamStep:
         """Re-add up to n queued frames at their current poses (those still in the submap being mapped;
         the others stay as their submap's move put them). Returns the seconds it took."""
         t0, traj = time.perf_counter(), self.fe.trajectory()
+        submaps = self.cfg.n3_loop == "submaps"
         with self._readding():
             for _ in range(n):
-                while self.pending and self.submap[self.pending[0]] != self.mapper.submaps.active:
+                while submaps and self.pending and self.submap[self.pending[0]] != self.mapper.submaps.active:
                     self.pending.pop(0)
                 if not self.pending:
                     break
                 i = self.pending.pop(0)
-                self.mapper.forget_frames([self.counter[i]])
-                self._map(i, traj[i], stay=True)
+                self.pairs_removed += int(self.mapper.forget_frames([self.counter[i]]))
+                self._map(i, traj[i], **({"stay": True} if submaps else {}))
+                self.readds += 1
         return time.perf_counter() - t0
 
     def follow_loop(self, frame_index: int) -> dict:
@@ -270,6 +279,12 @@ class N3SlamStep:
         # rebuild: every frame again, once any moved; moved: only those
         redo = {"rebuild": list(range(len(traj))) if moved else [], "moved": moved}.get(mode, [])
         t0 = time.perf_counter()
+        if mode == "moved" and self.cfg.n3_loop_readd_per_frame > 0:
+            # spread over the next frames, largest move first (the map's worst places are mended first);
+            # each re-add removes its frame's old pairs then, so the map keeps every frame meanwhile
+            queued = [i for i in sorted(moved, key=lambda i: -moves[i]) if i not in self.pending]
+            self.pending.extend(queued)
+            return self._loop_record(frame_index, mode, moves, t0, {"queued": len(queued)}, queued)
         if mode == "rebuild" and redo:
             mapper.reset()
         removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
@@ -338,6 +353,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
             "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
             "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "level_s", "map_s", "loop_s")),
             "readd_s": float(sum(r.get("readd_s", 0.0) for r in step.records)),
+            "readds": step.readds, "readd_pairs_removed": step.pairs_removed,
             "checkpoint_s": float(sum(r.get("checkpoint_s", 0.0) for r in step.records))}
 
 

@@ -267,6 +267,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
     out = {"run": out_dir, "map_kind": "n3", "frames": len(seq), "keyframes": len(res["keyframe_frames"]),
            "loops": res["loops"], "tracked_frames": len(tracked), "tracked_ok": sum(t["ok"] for t in tracked),
            "loop_map_s": float(sum(lp["map_s"] for lp in res["loops"])), "loop_readd_s": res["readd_s"],
+           "loop_readds": res["readds"], "loop_readd_pairs_removed": res["readd_pairs_removed"],
            "tracking": res["tracking"],
            "step": res["step_medians"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
