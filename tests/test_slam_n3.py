@@ -150,3 +150,59 @@ def test_slam_set_either_changes_the_run_or_is_refused_naming_the_key(tmp_path, 
     assert main(["slam", "city_slam", "--set", "n3.train.iterz=3", "--out", str(tmp_path / "r4")]) == 2
     assert "n3.train.iterz" in capsys.readouterr().err
     assert not (tmp_path / "r2").exists() and not (tmp_path / "r4").exists()
+
+
+def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_re_add_them():
+    """`n3_loop: moved` with `n3_loop_readd_per_frame` 2: the loop itself re-adds nothing (it queues the
+    frames that moved more than n3_loop_min_move_m, largest move first); each re-add removes that frame's
+    old pairs (by its number in the map) and maps it at its optimised pose; a second loop before the queue
+    is empty queues no frame twice; with 0 the loop re-adds every moved frame at once."""
+    from jaxmap.slam.n3slam import N3SlamStep
+
+    class Map:
+        frames = 0
+
+        def __init__(self):
+            self.forgot, self.added = [], []
+
+        def forget_frames(self, numbers):
+            self.forgot.append(list(numbers))
+            return 10 * len(numbers)
+
+        def add_prepared(self, scan, pose, **kw):
+            self.added.append((scan, float(pose[0, 3])))
+            self.frames += 1
+            return {"frame": self.frames - 1, "total_s": 0.0}
+
+    class Front:
+        def __init__(self, traj):
+            self.traj = traj
+
+        def trajectory(self):
+            return self.traj
+
+    def step(per_frame):
+        s = N3SlamStep.__new__(N3SlamStep)
+        moves = [0.0, 0.05, 0.01, 0.30, 0.10]        # frame 2 moved less than n3_loop_min_move_m (0.02)
+        s.cfg = load_config("configs/city_slam.yaml", ["n3_loop=moved", f"n3_loop_readd_per_frame={per_frame}"],
+                            schema=SlamConfig)
+        s.mapper, s.readds, s.pairs_removed, s.pending = Map(), 0, 0, []
+        s.mapped_at = [np.eye(4) for _ in moves]
+        s.fe = Front(np.stack([_shift(np.eye(4), m) for m in moves]))
+        s.scans, s.counter, s.submap = [f"scan{i}" for i in range(5)], [40, 41, 42, 43, 44], [0] * 5
+        return s
+
+    s = step(2)
+    rec = s.follow_loop(7)
+    assert rec["queued"] == 3 and s.pending == [3, 4, 1] and s.mapper.added == []
+    assert s.readd_pending(2) >= 0 and s.pending == [1]
+    assert s.mapper.forgot == [[43], [44]] and s.mapper.added == [("scan3", 0.30), ("scan4", 0.10)]
+    assert s.readds == 2 and s.pairs_removed == 20
+    s.follow_loop(8)                                   # frames 3 and 4 are at their poses now; 1 still queued
+    assert s.pending == [1]
+    s.readd_pending(5)
+    assert s.pending == [] and s.mapper.added[-1] == ("scan1", 0.05) and s.counter[1] == 2
+
+    s = step(0)
+    rec = s.follow_loop(7)
+    assert rec["reintegrated"] == 3 and s.pending == [] and len(s.mapper.added) == 3
