@@ -108,7 +108,7 @@ def default_tracker(cfg: SlamConfig):
     opts = TrackOptions(min_valid_fraction=cfg.n3_track_min_valid, min_seen=cfg.n3_track_min_seen)
     if not cfg.n3_track_young_rotation or opts.min_seen <= 1:
         return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
-    every = dataclasses.replace(opts, min_seen=0)
+    every = dataclasses.replace(opts, min_seen=1)   # every point (1: the settled program, its bar off)
 
     def track(static, state, points, T_init):
         r = track_scan(static, state, points, T_init, opts)

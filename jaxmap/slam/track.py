@@ -74,7 +74,8 @@ class TrackOptions:
     search_kernel_m: float = 0.3       # ... by the Geman-McClure cost at this scale
     search_stages: int = 2             # ... then again around the best, the grid shrunk to its spacing
     min_seen: int = 0                  # > 1: the solve weighs (and compares poses on) only the points whose leaf
-                                       # voxel holds pairs of at least this many frames (`track_program`)
+                                       # voxel holds pairs of at least this many frames (`track_program`; 1: every
+                                       # point, the test compiled in, so that a later min_seen > 1 compiles nothing)
     min_settled_fraction: float = 0.5  # ... and then ok needs at least this fraction of the points there
 
 
@@ -239,14 +240,18 @@ def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOption
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search) -> Refined:
+def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search,
+                  min_seen) -> Refined:
     """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)
-    (the search's widths are the traced `search`; a half-width of 0 skips it)."""
+    (the search's widths are the traced `search`; a half-width of 0 skips it). With opts.min_seen >= 1 the
+    settled test is compiled in and `min_seen` (traced int32) is its bar, <= 1: every point settled (so the
+    tracker's two calls in `jaxmap slam`, the settled points' and every point's, share one program)."""
     def sdf_fn(x):
         sdf, valid = query(static, state, x)
-        if opts.min_seen <= 1:
+        if opts.min_seen < 1:
             return sdf, valid
-        return sdf, (valid, frames_seen(static, state, x) >= opts.min_seen)
+        bar = jnp.where(min_seen <= 1, jnp.iinfo(jnp.int32).min, min_seen)
+        return sdf, (valid, frames_seen(static, state, x) >= bar)
 
     return refine_pose(sdf_fn, points_s, mask, R0, t0, opts, search)
 
@@ -279,10 +284,11 @@ def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOp
         return TrackResult(T_init.copy(), False, 0.0, float("inf"), 0)
     origin = origin_world(static, state)
     t0 = (T_init[:3, 3] - origin).astype(np.float32)
-    flags = dataclasses.replace(opts, search_m=1.0, search_yaw_deg=0.0)  # one compile for any widths, and none
+    # one compile for any widths (and none), and one for any min_seen >= 1 (traced)
+    flags = dataclasses.replace(opts, search_m=1.0, search_yaw_deg=0.0, min_seen=min(opts.min_seen, 1))
     widths = np.array([max(opts.search_m, 0.0), np.deg2rad(opts.search_yaw_deg)], np.float32)
     out = jax.device_get(track_program(static, flags, state, pts, mask, T_init[:3, :3].astype(np.float32), t0,
-                                       widths))
+                                       widths, np.int32(opts.min_seen)))
     pose = np.eye(4)
     pose[:3, :3] = np.asarray(out.R, np.float64)
     pose[:3, 3] = np.asarray(out.t, np.float64) + origin
