@@ -211,7 +211,7 @@ def slam_config(args):
     import argparse
 
     from jaxmap.config import ConfigError, SlamConfig
-    from jaxmap.slam.n3slam import n3_map_config
+    from jaxmap.runs.slam_n3 import n3_map_config
 
     n3 = [o[3:] for o in args.overrides if o.startswith("n3.")]
     rest = [o for o in args.overrides if not o.startswith("n3.")]
@@ -238,7 +238,7 @@ def slam(args) -> int:
     """`jaxmap slam CONFIG [--data DIR] [--out RUN]` or `jaxmap slam --resume RUN`: odometry, loop closure,
     pose graph, remapped map."""
     from jaxmap.config import SlamConfig
-    from jaxmap.slam.run import run_slam
+    from jaxmap.runs.slam import run_slam
     from jaxmap.viewer import view_options
 
     if args.resume:
@@ -273,7 +273,7 @@ def slam(args) -> int:
 
 def localize(args) -> int:
     """`jaxmap localize MAP --data SEQ [--init POSE] [--out RUN]`: localise a sequence in a saved N3 map."""
-    from jaxmap.slam.localize import frame_ranges, localize_sequence, read_init, summary_table
+    from jaxmap.runs.localize import frame_ranges, localize_sequence, read_init, summary_table
     from jaxmap.slam.track import TrackOptions
 
     init = read_init(args.init) if args.init else None

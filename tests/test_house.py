@@ -113,11 +113,13 @@ def test_one_frame_loop(call):
 RUN_LAYER = ("jaxmap.frame_loop", "jaxmap.viewer", "jaxmap.finish", "jaxmap.runs")
 
 
-def test_maps_stay_below_the_run_layer():
-    """The maps (`jaxmap.n3`, `jaxmap.imt`) are libraries a notebook or a script drives frame by frame: they
-    import nothing of the runs built on them (the frame loop, the viewer, the finisher, `jaxmap.runs`)."""
+def test_maps_and_slam_geometry_stay_below_the_run_layer():
+    """The maps (`jaxmap.n3`, `jaxmap.imt`) and the SLAM geometry (`jaxmap.slam`: odometry, loops, pose
+    graph, tracking, levelling) are libraries a notebook or a script drives frame by frame: they import
+    nothing of the runs built on them (the frame loop, the viewer, the finisher, `jaxmap.runs`, where
+    `jaxmap slam` and `jaxmap localize` live)."""
     edges, _ = _graph()
-    up = [f"{m} imports {d}" for m, deps in edges.items() if m.startswith(("jaxmap.n3", "jaxmap.imt"))
+    up = [f"{m} imports {d}" for m, deps in edges.items() if m.startswith(("jaxmap.n3", "jaxmap.imt", "jaxmap.slam"))
           for d in deps if d.startswith(RUN_LAYER)]
     assert not up, up
 

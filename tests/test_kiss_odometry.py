@@ -45,7 +45,7 @@ def test_kiss_icp_odometry_on_the_noisy_small_city(dense_city):
     """KISS-ICP around the whole block (62 m, 64 frames): 9.6 cm ATE, 22 cm at most, 0.11 deg measured (unseeded,
     as KISS-ICP comes: 54 cm, 76 cm at most)."""
     from jaxmap.io import open_sequence
-    from jaxmap.slam.odometry import odometry_trajectory
+    from jaxmap.runs.slam import odometry_trajectory
     from jaxmap.slam.trajectory import ate
 
     seq = open_sequence(dense_city)

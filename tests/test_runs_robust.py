@@ -347,7 +347,7 @@ def test_debug_shows_the_traceback(tmp_path):
 def test_every_rule_names_a_field_of_its_config():
     import dataclasses
 
-    import jaxmap.slam.run  # noqa: F401  (registers the front end's rules)
+    import jaxmap.runs.slam  # noqa: F401  (registers the front end's rules)
     from jaxmap.config import RULES
 
     for schema, rules in RULES.items():

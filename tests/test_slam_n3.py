@@ -1,5 +1,5 @@
 """`jaxmap slam` with `map_kind: n3`: the front end adopts refined (tracked) poses, and the online N3 map
-follows a loop correction (jaxmap.slam.n3slam)."""
+follows a loop correction (jaxmap.runs.slam_n3)."""
 from __future__ import annotations
 
 import numpy as np
@@ -78,7 +78,7 @@ def test_online_n3_map_follows_the_loop_correction(small_noisy_city, tmp_path):
     bound 6.0 cm fails a map that does not follow; every frame's points lie on the final map at the
     frame's final pose (largest per-frame median |SDF| 1.78 cm, 2.08 cm with `none`)."""
     from jaxmap.config import save_config
-    from jaxmap.slam.run import run_slam
+    from jaxmap.runs.slam import run_slam
 
     n3cfg = load_config("configs/city.yaml", ["train.iters=20", "train.nv=512", "eval.n_samples=200000"])
     save_config(n3cfg, str(tmp_path / "n3.yaml"))
@@ -132,7 +132,7 @@ def test_slam_set_either_changes_the_run_or_is_refused_naming_the_key(tmp_path, 
 
     from jaxmap.cli import main
     from jaxmap.commands import slam_config
-    from jaxmap.slam.n3slam import n3_map_config
+    from jaxmap.runs.slam_n3 import n3_map_config
 
     def args(*sets, config="city_slam"):
         return argparse.Namespace(config=config, overrides=list(sets), data=None, out=str(tmp_path / "run"))
@@ -157,7 +157,7 @@ def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_r
     frames that moved more than n3_loop_min_move_m, largest move first); each re-add removes that frame's
     old pairs (by its number in the map) and maps it at its optimised pose; a second loop before the queue
     is empty queues no frame twice; with 0 the loop re-adds every moved frame at once."""
-    from jaxmap.slam.n3slam import N3SlamStep
+    from jaxmap.runs.slam_n3 import N3SlamStep
 
     class Map:
         frames = 0
@@ -206,3 +206,21 @@ def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_r
     s = step(0)
     rec = s.follow_loop(7)
     assert rec["reintegrated"] == 3 and s.pending == [] and len(s.mapper.added) == 3
+
+
+def test_a_slam_state_saved_before_the_step_moved_to_the_run_layer_still_loads():
+    """slam_state.pkl names the step's class by module: one written while it was `jaxmap.slam.n3slam`
+    (before `jaxmap slam`'s orchestration moved to `jaxmap.runs`) loads as today's `N3SlamStep`."""
+    import io
+    import pickle
+
+    from jaxmap.runs import slam_n3
+
+    step = slam_n3.N3SlamStep.__new__(slam_n3.N3SlamStep)
+    step.__dict__.update(counter=[3, 4], pending=[1])
+    old = pickle.dumps({"step": step}, protocol=0).replace(b"jaxmap.runs.slam_n3", b"jaxmap.slam.n3slam")
+    assert b"jaxmap.slam.n3slam" in old
+    with pytest.raises(ModuleNotFoundError):
+        pickle.loads(old)
+    back = slam_n3._StateUnpickler(io.BytesIO(old)).load()["step"]
+    assert type(back) is slam_n3.N3SlamStep and back.counter == [3, 4] and back.pending == [1]

@@ -103,7 +103,7 @@ def test_a_failure_mid_run_saves_the_map_and_names_the_frame(small_room, tmp_pat
     from jaxmap.imt.mapper import ImtMapper
     from jaxmap.slam import frontend
     from jaxmap.config import SlamConfig
-    from jaxmap.slam.run import run_slam
+    from jaxmap.runs.slam import run_slam
 
     real = frontend.FrontEnd.add_frame
 
@@ -127,7 +127,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
     from jaxmap.geometry import rotation_from_axis_angle
     from jaxmap.imt.mapper import ImtMapper
     from jaxmap.io import open_sequence
-    from jaxmap.slam import run as run_mod
+    from jaxmap.runs import slam as run_mod
     from jaxmap.slam.frontend import FrameResult
     from jaxmap.config import SlamConfig
 
@@ -154,7 +154,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
         def trajectory(self):
             return gt[:self.n]
 
-    monkeypatch.setattr("jaxmap.slam.run.FrontEnd", ScriptedFrontEnd)
+    monkeypatch.setattr("jaxmap.runs.slam.FrontEnd", ScriptedFrontEnd)
     cfg = SlamConfig(data=DataConfig(path=str(small_room), every_frame=1, end_frame=len(gt)), mesh_at_loops=False,
                      output=str(tmp_path / "run"))
     mapper = ImtMapper(cfg.imt())

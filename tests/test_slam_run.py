@@ -12,7 +12,7 @@ from jaxmap.errors import DataError
 from jaxmap.geometry import make_pose, rotation_from_axis_angle
 from jaxmap.io import open_sequence
 from jaxmap.config import SlamConfig
-from jaxmap.slam.run import run_slam, snapshot_files
+from jaxmap.runs.slam import run_slam, snapshot_files
 from jaxmap.slam.trajectory import write_kitti, write_tum
 
 

@@ -1,4 +1,4 @@
-"""`jaxmap slam` with `n3_loop: submaps` (jaxmap.slam.n3slam): a loop correction moves each submap as a
+"""`jaxmap slam` with `n3_loop: submaps` (jaxmap.runs.slam_n3): a loop correction moves each submap as a
 rigid body by its frames' correction (not its inverse), each pass maps into submaps of its own, and the
 frames of the submap being mapped that still moved against it are re-added."""
 import numpy as np
@@ -7,7 +7,7 @@ from analytic_lidar import corridor_scan, pose_at
 from jaxmap.config import SlamConfig, load_config
 from jaxmap.n3 import scan
 from jaxmap.n3.submap_mapper import SubmapMapper
-from jaxmap.slam.n3slam import N3SlamStep, submap_pose
+from jaxmap.runs.slam_n3 import N3SlamStep, submap_pose
 
 SMALL = ["train.iters=6", "train.nv=128", "train.np_per_voxel=8", "preprocess.max_range_m=10.0",
          "preprocess.vox_down_m=0.2", "window.initial_blocks=4096", "mesh.min_component_faces=0",
@@ -142,7 +142,7 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     import signal
 
     from jaxmap.cli import main
-    from jaxmap.slam import n3slam
+    from jaxmap.runs import slam_n3 as n3slam
 
     sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=16", "n3_loop=submaps",
                                    "n3_submap_m=6", "n3.eval.n_samples=20000", "n3.mesh.resolution_m=0.2")]
@@ -171,7 +171,7 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
 
 SLOW_SLAM = """
 import sys, time
-from jaxmap.slam import n3slam
+from jaxmap.runs import slam_n3 as n3slam
 real = n3slam.N3SlamStep.__call__
 def slow(self, frame):
     out = real(self, frame)
@@ -199,7 +199,7 @@ def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_cit
     import time
 
     from jaxmap.cli import main
-    from jaxmap.slam.n3slam import SCANS_DIR, STATE_FILE
+    from jaxmap.runs.slam_n3 import SCANS_DIR, STATE_FILE
 
     sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=14", "checkpoint_every=4",
                                    "n3.eval.n_samples=20000", "n3.mesh.resolution_m=0.2")]

@@ -197,7 +197,7 @@ def test_localize_with_a_wrong_initial_pose_fails_with_a_clear_error(hall_run, t
 
 def test_read_init_takes_a_kitti_line_a_matrix_or_a_file(tmp_path):
     from jaxmap.errors import DataError
-    from jaxmap.slam.localize import read_init
+    from jaxmap.runs.localize import read_init
 
     T = make_pose(rotation_from_axis_angle(np.array([0.0, 0.0, 1.0]), 0.3), np.array([1.0, -2.0, 3.0]))
     line = " ".join(repr(float(v)) for v in T[:3].ravel())
@@ -218,7 +218,7 @@ def test_read_init_takes_a_kitti_line_a_matrix_or_a_file(tmp_path):
 def test_localize_summary_names_the_lost_frames_and_the_error_of_the_localised_ones():
     """Issue 43: lost frames keep their prediction, so the error over all frames mixes in how far the
     prediction drifted; the summary prints the lost frames as ranges and the localised frames' error beside."""
-    from jaxmap.slam.localize import frame_ranges, pose_errors, summary_table
+    from jaxmap.runs.localize import frame_ranges, pose_errors, summary_table
 
     assert frame_ranges([12, 10, 11, 15, 17, 18]) == "10-12, 15, 17-18" and frame_ranges([]) == ""
     est, gt = np.tile(np.eye(4), (20, 1, 1)), np.tile(np.eye(4), (20, 1, 1))
@@ -252,7 +252,7 @@ def young_tracks(small_city):
     tested here."""
     from jaxmap.config.slam import SlamConfig
     from jaxmap.io import open_sequence
-    from jaxmap.slam.n3slam import default_tracker
+    from jaxmap.runs.slam_n3 import default_tracker
 
     seq = open_sequence(str(small_city))
     cfg = load_config("city", [f"data.path={small_city}", "preprocess.device=false"])

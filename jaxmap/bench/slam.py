@@ -113,7 +113,7 @@ def slam_against_references(cfg, out: str) -> dict:
     from jaxmap.finish import mesh_and_metrics
     from jaxmap.frame_loop import open_run_sequence
     from jaxmap.runs.imt import build_map
-    from jaxmap.slam.run import run_slam
+    from jaxmap.runs.slam import run_slam
 
     slam = run_slam(cfg, cfg.output)
     icfg = cfg.imt()
@@ -134,8 +134,8 @@ def n3_slam_against_references(cfg, out: str) -> dict:
     are the wall-clock of each frame loop less its compiling, over the frames."""
     from jaxmap.frame_loop import open_run_sequence
     from jaxmap.runs.n3 import map_sequence
-    from jaxmap.slam.n3slam import n3_map_config
-    from jaxmap.slam.run import n3_from_poses, run_slam
+    from jaxmap.runs.slam_n3 import n3_map_config
+    from jaxmap.runs.slam import n3_from_poses, run_slam
 
     load = os.getloadavg()
     gt = map_sequence(n3_map_config(cfg, os.path.join(out, "n3_gt")), os.path.join(out, "n3_gt"))
@@ -256,7 +256,7 @@ def run_on(data: str, every: int, out: str, args, compare: bool) -> dict:
     from jaxmap.frame_loop import open_run_sequence
     from jaxmap.runs.imt import build_map
     from jaxmap.config import SlamConfig
-    from jaxmap.slam.run import run_slam
+    from jaxmap.runs.slam import run_slam
 
     os.makedirs(out, exist_ok=True)
     over = base_overrides(args, data, os.path.join(out, "slam")) + [f"data.every_frame={every}"]
@@ -331,7 +331,7 @@ def compare_odometry(cfg, seq) -> dict:
     import dataclasses
 
     from jaxmap.errors import JaxmapError
-    from jaxmap.slam.odometry import odometry_trajectory
+    from jaxmap.runs.slam import odometry_trajectory
     from jaxmap.slam.trajectory import ate, have_evo, rpe
 
     gt = np.asarray(seq.poses, dtype=np.float64)

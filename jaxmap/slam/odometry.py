@@ -10,13 +10,11 @@ open3d is imported inside the functions, so `import jaxmap` (and the mapping cor
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
 from jaxmap.config import ConfigError
 from jaxmap.config.slam import ODOMETRY_METHODS
-from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
 from jaxmap.geometry import compose, pose_change
 from jaxmap.slam.kiss import KissOdometry
 # The config, prepared scan, step result and open3d helpers live in odometry_common, the registrations
@@ -107,21 +105,3 @@ def make_odometry(cfg: OdometryConfig | None = None, initial_pose: np.ndarray | 
         return KissOdometry(cfg, initial_pose)
     raise ConfigError(f"frontend.odometry.method: unknown odometry {cfg.method!r}; use one of "
                       + ", ".join(repr(m) for m in ODOMETRY_METHODS))
-
-
-def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tuple[np.ndarray, float]:
-    """Run the odometry `cfg.method` names over every frame of `seq` from its first pose.
-
-    Returns (poses [N,4,4] float64, median seconds per frame after the first)."""
-    odo = make_odometry(cfg, np.asarray(seq.poses[0], dtype=np.float64))
-    poses, times = [], []
-
-    def step(frame: Frame):
-        t0 = time.perf_counter()
-        poses.append(odo.step(frame.points).pose)
-        times.append(time.perf_counter() - t0)
-        return {}, poses[-1]
-
-    run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
-               progress=Progress(f"odometry ({cfg.method})", progress))
-    return np.stack(poses), float(np.median(times[1:])) if len(times) > 1 else float(times[0])

@@ -9,7 +9,7 @@ Per frame of the sequence (its poses.txt is only used for the first pose and for
      keyframe poses (`jaxmap.imt.remap`: only the keyframes whose pose moved are touched); with
      `mesh_at_loops` a mesh is written before and after (`loop_<n>_before.ply`, `loop_<n>_after.ply`).
 With `map_kind: n3` the map is instead the N3 map of `n3_config`, mapped online at the poses the front
-end and tracking against that map give, and following each loop correction (`jaxmap.slam.n3slam`).
+end and tracking against that map give, and following each loop correction (`jaxmap.runs.slam_n3`).
 With `external_poses: DIR` the front end is replaced by pose-graph snapshots of another SLAM system
 (one TUM or KITTI file per keyframe update, in natural order, as ORB-SLAM2 writes them; snapshot i
 holds the poses of the first n_i frames of the selection): new frames are fused with their snapshot
@@ -38,14 +38,16 @@ import time
 import numpy as np
 
 from jaxmap.config import SlamConfig, save_config
+from jaxmap.config.slam import OdometryConfig
 from jaxmap.errors import DataError, JaxmapError
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Frame, FramesRun, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
 from jaxmap.geometry import compose
 from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.core import PROGRAMS
+from jaxmap.runs.slam_n3 import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend, show_loop
 from jaxmap.slam.frontend import FrontEnd
-from jaxmap.slam.n3slam import SlamFrame, load_slam, n3_map_config, open_n3_mapper, run_n3_frontend, show_loop
+from jaxmap.slam.odometry import make_odometry
 from jaxmap.slam.odometry_common import Scan
 from jaxmap.slam.trajectory import ate, axis_errors, read_pose_snapshot, write_kitti, write_trajectory
 
@@ -216,7 +218,7 @@ def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
 def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
              view: dict | None = None, resume: bool = False) -> dict:
     """view: {"port", "mesh_every"} for a live viewer (`jaxmap.frame_loop.open_viewer`), None = none.
-    resume: go on from the run's SLAM checkpoint in out_dir (map_kind n3; `jaxmap.slam.n3slam.load_slam`)."""
+    resume: go on from the run's SLAM checkpoint in out_dir (map_kind n3; `jaxmap.runs.slam_n3.load_slam`)."""
     t_start = time.perf_counter()
     os.makedirs(out_dir, exist_ok=True)
     if not resume:
@@ -247,7 +249,7 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
 
 def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
                 view: dict | None = None, track=None, resume: bool = False) -> dict:
-    """`map_kind: n3` (`jaxmap.slam.n3slam`): the N3 map of `n3_config`, mapped online at the tracked poses
+    """`map_kind: n3` (`jaxmap.runs.slam_n3`): the N3 map of `n3_config`, mapped online at the tracked poses
     and following each loop correction. Leaves what `run_slam` does, the map being N3's (checkpoint/
     `N3Mapper.load`s; n3_config.yaml is the map's resolved config). track: a tracker in place of
     `jaxmap.slam.track.track_scan` (tests)."""
@@ -319,3 +321,21 @@ def _jsonable(x):
     if isinstance(x, (np.floating, np.integer)):
         return x.item()
     raise TypeError(type(x))
+
+
+def odometry_trajectory(seq, cfg: OdometryConfig, progress: bool = False) -> tuple[np.ndarray, float]:
+    """Run the odometry `cfg.method` names over every frame of `seq` from its first pose.
+
+    Returns (poses [N,4,4] float64, median seconds per frame after the first)."""
+    odo = make_odometry(cfg, np.asarray(seq.poses[0], dtype=np.float64))
+    poses, times = [], []
+
+    def step(frame: Frame):
+        t0 = time.perf_counter()
+        poses.append(odo.step(frame.points).pose)
+        times.append(time.perf_counter() - t0)
+        return {}, poses[-1]
+
+    run_frames(Prefetcher(seq, 0, len(seq)), step, total=len(seq),
+               progress=Progress(f"odometry ({cfg.method})", progress))
+    return np.stack(poses), float(np.median(times[1:])) if len(times) > 1 else float(times[0])

@@ -400,6 +400,14 @@ def save_slam(step: N3SlamStep, out_dir: str) -> None:
     os.replace(path + ".tmp", path)
 
 
+class _StateUnpickler(pickle.Unpickler):
+    """slam_state.pkl's reader: a run saved while this module was `jaxmap.slam.n3slam` still resumes."""
+    MOVED = {"jaxmap.slam.n3slam": __name__}
+
+    def find_class(self, module, name):
+        return super().find_class(self.MOVED.get(module, module), name)
+
+
 def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
     """(map, step) of the SLAM checkpoint in out_dir (`save_slam`); CheckpointError naming what is missing
     or does not match."""
@@ -410,7 +418,7 @@ def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
         raise CheckpointError(f"{path}: missing, so the run cannot be continued (it stopped before its first "
                               "save, or was killed): start again with --overwrite")
     with open(path, "rb") as f:
-        saved = pickle.load(f)
+        saved = _StateUnpickler(f).load()
     ckpt = os.path.join(out_dir, "checkpoint")
     if "map_step" in saved:  # the map written with this state (a later one may be there: killed in between)
         ckpt = os.path.join(ckpt, str(saved["map_step"]))
