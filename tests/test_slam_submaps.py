@@ -184,12 +184,12 @@ sys.exit(main(sys.argv[1:]))
 
 
 def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_city, tmp_path):
-    """`jaxmap slam` (one grid, tracking on) saves itself every `checkpoint_every` (4) frames; killed by
-    SIGKILL after its first save (no handler runs: what a crash or the OOM killer does), `--resume` goes on
-    from that save and ends with the trajectory (to 1e-9 m) and the map (SDF at points along the drive, to
-    1e-5 m) of the run that was never stopped. Without the periodic save there is no state to resume
-    (`slam_state.pkl` missing: the run is lost); the scans for loop corrections come from `slam_scans/`,
-    written a file a frame, not from the saved state."""
+    """`jaxmap slam` (the default map of submaps, tracking on) saves itself every `checkpoint_every` (4)
+    frames; killed by SIGKILL after its first save (no handler runs: what a crash or the OOM killer does),
+    `--resume` goes on from that save and ends with the trajectory (to 1e-9 m) and the map (SDF at points
+    along the drive, to 1e-5 m) of the run that was never stopped. Without the periodic save there is no
+    state to resume (`slam_state.pkl` missing: the run is lost); the scans for loop corrections come from
+    `slam_scans/`, written a file a frame, not from the saved state."""
     import json
     import os
     import pickle
