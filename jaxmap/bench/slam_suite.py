@@ -46,19 +46,19 @@ def streets(root: str, only=None) -> dict:
 def offline_street(data: str, slam_dir: str, out: str) -> str:
     """The street `data` with its poses replaced by the SLAM run's final trajectory (slam_dir's
     trajectory_kitti.txt, LiDAR poses in the world) in directory `out` (scans, calibration, ground
-    truth and meta linked, not copied); returns out. KITTI's poses.txt holds camera poses: Tr @ T @ Tr^-1."""
-    from jaxmap.io.kitti import read_calib, write_poses
+    truth and meta linked, not copied); returns out. KITTI's poses.txt holds camera poses."""
+    from jaxmap.io import open_sequence
+    from jaxmap.io.kitti import camera_poses_from_lidar, write_poses
     from jaxmap.slam.trajectory import read_pose_snapshot
 
     T = read_pose_snapshot(os.path.join(slam_dir, "trajectory_kitti.txt"))
-    calib = os.path.join(data, "calib.txt")
-    Tr = read_calib(calib) if os.path.isfile(calib) else np.eye(4)
+    Tr = open_sequence(data).Tr   # (the identity without calib.txt)
     os.makedirs(out, exist_ok=True)
     for name in os.listdir(data):
         link = os.path.join(out, name)
         if name != "poses.txt" and not os.path.lexists(link):
             os.symlink(os.path.abspath(os.path.join(data, name)), link)
-    write_poses(os.path.join(out, "poses.txt"), Tr @ T @ np.linalg.inv(Tr))
+    write_poses(os.path.join(out, "poses.txt"), camera_poses_from_lidar(T, Tr))
     return out
 
 

@@ -276,8 +276,6 @@ class N3SlamStep:
         moves = np.array([pose_moved(a, b) for a, b in zip(self.mapped_at, traj)])
         mode, mapper = self.cfg.n3_loop, self.mapper
         moved = [i for i in range(len(traj)) if moves[i] > self.cfg.n3_loop_min_move_m]
-        # rebuild: every frame again, once any moved; moved: only those
-        redo = {"rebuild": list(range(len(traj))) if moved else [], "moved": moved}.get(mode, [])
         t0 = time.perf_counter()
         if mode == "moved" and self.cfg.n3_loop_readd_per_frame > 0:
             # spread over the next frames, largest move first (the map's worst places are mended first);
@@ -285,6 +283,8 @@ class N3SlamStep:
             queued = [i for i in sorted(moved, key=lambda i: -moves[i]) if i not in self.pending]
             self.pending.extend(queued)
             return self._loop_record(frame_index, mode, moves, t0, {"queued": len(queued)}, queued)
+        # rebuild: every frame again, once any moved; moved: only those, at once
+        redo = {"rebuild": list(range(len(traj))) if moved else [], "moved": moved}.get(mode, [])
         if mode == "rebuild" and redo:
             mapper.reset()
         removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
