@@ -169,10 +169,13 @@ def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_r
             self.forgot.append(list(numbers))
             return 10 * len(numbers)
 
-        def add_prepared(self, scan, pose, **kw):
+        def submit_prepared(self, scan, pose, **kw):
             self.added.append((scan, float(pose[0, 3])))
             self.frames += 1
-            return {"frame": self.frames - 1, "total_s": 0.0}
+            return {"frame": self.frames - 1}, []
+
+        def finish(self):
+            return []
 
     class Front:
         def __init__(self, traj):
@@ -187,6 +190,7 @@ def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_r
         s.cfg = load_config("configs/city_slam.yaml", ["n3_loop=moved", f"n3_loop_readd_per_frame={per_frame}"],
                             schema=SlamConfig)
         s.mapper, s.readds, s.pairs_removed, s.pending = Map(), 0, 0, []
+        s.records, s._waiting, s._finished = [], {}, []
         s.mapped_at = [np.eye(4) for _ in moves]
         s.fe = Front(np.stack([_shift(np.eye(4), m) for m in moves]))
         s.scans, s.counter, s.submap = [f"scan{i}" for i in range(5)], [40, 41, 42, 43, 44], [0] * 5

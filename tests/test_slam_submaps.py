@@ -149,7 +149,7 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", *sets]
     ref, cut = tmp_path / "ref", tmp_path / "cut"
     assert main([*base, "--out", str(ref)]) == 0
-    step = n3slam.N3SlamStep.__call__
+    step = n3slam.N3SlamStep.submit
 
     def stop_after_8(self, frame):
         out = step(self, frame)
@@ -157,11 +157,11 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
             os.kill(os.getpid(), signal.SIGINT)
         return out
 
-    monkeypatch.setattr(n3slam.N3SlamStep, "__call__", stop_after_8)
+    monkeypatch.setattr(n3slam.N3SlamStep, "submit", stop_after_8)
     assert main([*base, "--out", str(cut)]) == 130
     assert f"jaxmap slam --resume {cut}" in capsys.readouterr().err
     assert json.loads((cut / "run.json").read_text())["status"] == "interrupted"
-    monkeypatch.setattr(n3slam.N3SlamStep, "__call__", step)
+    monkeypatch.setattr(n3slam.N3SlamStep, "submit", step)
     assert main(["slam", "--resume", str(cut), "--no-progress"]) == 0
     ma, mb = assert_same_run(ref, cut, 16)
     assert len(ma.submaps.infos) == len(mb.submaps.infos) >= 2
@@ -172,12 +172,12 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
 SLOW_SLAM = """
 import sys, time
 from jaxmap.runs import slam_n3 as n3slam
-real = n3slam.N3SlamStep.__call__
+real = n3slam.N3SlamStep.submit
 def slow(self, frame):
     out = real(self, frame)
     time.sleep(0.4)  # leaves time to kill the run between its checkpoints
     return out
-n3slam.N3SlamStep.__call__ = slow
+n3slam.N3SlamStep.submit = slow
 from jaxmap.cli import main
 sys.exit(main(sys.argv[1:]))
 """
@@ -217,7 +217,8 @@ def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_cit
     proc.communicate()
     assert proc.returncode == -signal.SIGKILL
     saved = pickle.loads((cut / STATE_FILE).read_bytes())
-    assert 4 <= saved["frames"] < 14 and saved["frames"] % 4 == 0, saved["frames"]
+    # a save every 4 frames finished, the frame then in flight (its map program dispatched) settled into it
+    assert 4 <= saved["frames"] < 14 and saved["frames"] % 4 in (0, 1), saved["frames"]
     assert len(saved["step"].scans._held) == 0   # the state carries the scans' count, not the scans
     assert len(os.listdir(cut / SCANS_DIR)) >= saved["frames"]
     assert json.loads((cut / "run.json").read_text())["status"] == "running"   # nothing ran at the kill

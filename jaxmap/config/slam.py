@@ -202,6 +202,7 @@ class SlamConfig:
     n3_track_min_valid: float = 0.8   # n3: adopt a tracked pose only when this fraction of the scan's points lies in
                                       # the map (where it is young, n3_track_min_seen keeps it out: docs/slam.md)
     n3_track_max_range_m: float = 0.0  # n3: track with the scan's points within this range only (0 = all)
+    n3_track_points: int = 4096       # n3: ... a random subset of this many of them (one compile for any scan)
     n3_track_min_seen: int = 2        # n3: track with the points whose map voxel holds training pairs of at least
                                       # this many frames (a place seen by one frame is fitted, not yet known, and
                                       # pulls the pose down: docs/slam.md); fewer than half the points there: the
@@ -209,6 +210,10 @@ class SlamConfig:
     n3_track_young_rotation: bool = True  # n3: ... unless the map is young there (fewer than half settled): then
                                       # the rotation tracked with every point is taken, with the odometry's
                                       # position (a young map biases the position, not the tilt: docs/slam.md)
+    n3_track_submap_min_frames: int = 3  # n3_loop submaps: a scan is tracked against a submap of at least this
+                                      # many frames (a new one holds little: the one before it is tracked against
+                                      # while it grows; that one, seen from ever farther, pulled the poses by
+                                      # 0.3-2 cm a new submap with 10: docs/slam.md)
     n3_loop: str = "moved"            # n3: how the map follows a loop correction: submaps (the map is a chain of
                                       # submaps of n3_submap_m, each pass its own; a loop moves each as a rigid
                                       # body), rebuild (one grid, every frame again at the optimised poses),
@@ -242,7 +247,9 @@ class SlamConfig:
                     "mesh_at_loops": "mesh_at_loops meshes the imt map at loops; with map_kind n3 it is not used"}
         why = f"{{}} is read with map_kind n3 only (this run's map_kind is {self.map_kind})"
         out = {k: why.format(k) for k in ("n3_track", "n3_track_min_valid", "n3_track_max_range_m", "n3_track_min_seen",
-                                            "n3_track_young_rotation", "n3_loop", "n3_loop_min_move_m", "n3_loop_readd_iters",
+                                            "n3_track_young_rotation", "n3_track_points", "n3_track_submap_min_frames",
+                                            "n3_loop",
+                                            "n3_loop_min_move_m", "n3_loop_readd_iters",
                                             "n3_loop_readd_per_frame", "n3_submap_m",
                                             "checkpoint_every")}
         if not self.n3_config:

@@ -190,18 +190,26 @@ class N3Mapper:
         prepared, pose = self._start.prepare(points_s, pose, self.frames)
         return self.add_prepared(prepared, pose, since=t0)
 
-    def add_prepared(self, prepared: PreparedScan, pose, *, since: float | None = None) -> dict:
+    def add_prepared(self, prepared: PreparedScan, pose, *, since: float | None = None, **kw) -> dict:
         """`add_frame` of a scan made ready ahead (`start.prepare`, e.g. in a prefetch thread, as SLAM does
-        before it knows the pose) at pose [4, 4] T_world_sensor; since: when its preparation began."""
+        before it knows the pose) at pose [4, 4] T_world_sensor; since: when its preparation began. Every
+        frame submitted before it must have been finished (`finish`). kw: `submit_prepared`'s."""
+        self.submit_prepared(prepared, pose, since=since, **kw)
+        ((info, kept),) = self.finish()
+        return {**info, "kept": kept}
+
+    def submit_prepared(self, prepared: PreparedScan, pose, *, since: float | None = None) -> tuple[dict, list]:
+        """`add_prepared` without waiting for the frame: returns (where it went: {"frame": its number in the
+        map}, the (record, kept) of the frames finished meanwhile, as `submit`); its own record comes back
+        from a later `submit` or `finish`."""
         t1 = time.perf_counter()
         if self.frames == 0:  # (again where the map started from a first scan: this frame's pose places it)
             self._begin(None, pose)
         self._bucket = scan.bucket_for(len(prepared.points), self._bucket)
         batch = self._start.batch(prepared, pose, self._origin, self._bucket)
-        self.submit(batch, points=len(prepared.points), prepare_s=t1 - (since or t1),
-                    main_s=time.perf_counter() - (since or t1))
-        ((info, kept),) = self.finish()
-        return {**info, "kept": kept}
+        done = self.submit(batch, points=len(prepared.points), prepare_s=t1 - (since or t1),
+                           main_s=time.perf_counter() - (since or t1))
+        return {"frame": self.frames - 1}, done
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
                main_s: float = 0.0, pose=None, origin=None) -> list[tuple[N3Record, np.ndarray | None]]:

@@ -60,22 +60,24 @@ class SubmapMapper(N3Mapper):
             if not self._subs.infos:
                 self._subs.active = self._subs.start(np.asarray(position_w, np.float64))
 
-    def add_prepared(self, prepared, pose, *, since: float | None = None, stay: bool = False) -> dict:
-        """`N3Mapper.add_prepared` with pose [4, 4] T_world_sensor in the world: mapped into the submap the
-        pose falls in (stay: the active one, e.g. a frame of it added again), at the pose in that submap's
-        frame (a moved submap's, not the world's)."""
+    def submit_prepared(self, prepared, pose, *, since: float | None = None, stay: bool = False) -> tuple[dict, list]:
+        """`N3Mapper.submit_prepared` with pose [4, 4] T_world_sensor in the world: mapped into the submap
+        the pose falls in (stay: the active one, e.g. a frame of it added again), at the pose in that
+        submap's frame (a moved submap's, not the world's); where it went also names the submap and the
+        frame's number in it ("submap", "submap_frame")."""
         pose = np.asarray(pose, np.float64)
         if self.frames and not stay:
             self._enter(pose)
-        self._next_pose, self._again = pose, stay  # for `submit`, which `N3Mapper.add_prepared` calls
+        self._next_pose, self._again = pose, stay  # for `submit`, which `N3Mapper.submit_prepared` calls
         local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
-        return super().add_prepared(prepared, local, since=since)
+        placed, done = super().submit_prepared(prepared, local, since=since)
+        return {**placed, "submap": self._subs.active, "submap_frame": self._local - 1}, done
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
                pose=None, origin=None) -> list:
         """`N3Mapper.submit`, first moving to the submap the frame's pose [4, 4] (T_world_sensor) falls in;
         origin: [3] the map frame the batch was uploaded in (`Frame.origin`; moved when it is another's)."""
-        if pose is None:  # from `add_prepared`, which has entered the frame's submap
+        if pose is None:  # from `submit_prepared`, which has entered the frame's submap
             pose, self._next_pose = self._next_pose, None
         elif self.frames:
             self._enter(np.asarray(pose, np.float64))

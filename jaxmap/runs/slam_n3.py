@@ -1,14 +1,16 @@
 """`jaxmap slam` with `map_kind: n3`: the N3 map is the SLAM map, built online at the tracked poses.
 
-Per frame of the sequence (`N3SlamStep`, a step of `jaxmap.frame_loop.run_frames`):
-  1. the front end's odometry (`FrontEnd`: ICP or KISS-ICP) guesses the pose;
-  2. with `n3_track`, the scan is tracked against the N3 map as trained so far
-     (`jaxmap.slam.track.track_scan`: the pose that puts the scan on the map's zero level set); when
-     tracking says ok (converged, small residual, and at least `n3_track_min_valid` of the points
-     inside the map) the front end adopts that pose (`FrontEnd.add_frame(refine=...)`: its next
-     prediction, the keyframe's graph node and the loop search start from it), else the odometry
-     pose is kept;
-  3. the frame goes into the N3 map at that pose (`N3Mapper.add_frame`, the frame program of `jaxmap map`);
+Per frame of the sequence (`N3SlamStep`, the `Steps` of `jaxmap.frame_loop.run_frames`):
+  1. the front end's odometry (`FrontEnd`: ICP or KISS-ICP) guesses the pose (while the map program of
+     the frame before still runs: the map's frames are dispatched, not waited for);
+  2. with `n3_track`, the scan is tracked against the N3 map as trained so far, that frame included
+     (`jaxmap.slam.track.track_scan`: the pose that puts the scan on the map's zero level set; with
+     submaps, against the nearest of at least `n3_track_submap_min_frames` frames); when tracking says
+     ok (converged, small residual, and at least `n3_track_min_valid` of the points inside the map) the
+     front end adopts that pose (`FrontEnd.add_frame(refine=...)`: its next prediction, the keyframe's
+     graph node and the loop search start from it), else the odometry pose is kept;
+  3. the frame goes into the N3 map at that pose (`N3Mapper.submit_prepared`, the frame program of
+     `jaxmap map`), and its record comes back with the next frame's;
   4. when a loop is accepted and the pose graph moves the frames, the map follows (`n3_loop`):
      `submaps`: the map is a chain of submaps (`SubmapMapper`, a new one every `n3_submap_m`, each pass
      through a street its own), and each submap is moved as a rigid body to the pose that fits its frames'
@@ -56,11 +58,6 @@ from jaxmap.slam.scan_store import ScanStore
 
 log = logging.getLogger("jaxmap")
 
-# n3_loop submaps: a scan is tracked against a submap of at least this many frames (a new one holds
-# little: the one before it, whose range covers the sensor, is tracked against while it grows)
-TRACK_MIN_FRAMES = 10
-
-
 def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
     """The N3 map's config: `cfg.n3_config` with `cfg.n3_set`'s overrides, the SLAM run's data selection
     (path, kind, frames) and `out_dir` as output."""
@@ -105,7 +102,8 @@ def default_tracker(cfg: SlamConfig):
     height 1.1 cm low against 0.3 cm high; docs/slam.md)."""
     from jaxmap.slam.track import TrackOptions, track_scan
 
-    opts = TrackOptions(min_valid_fraction=cfg.n3_track_min_valid, min_seen=cfg.n3_track_min_seen)
+    opts = TrackOptions(min_valid_fraction=cfg.n3_track_min_valid, min_seen=cfg.n3_track_min_seen,
+                        max_points=cfg.n3_track_points)
     if not cfg.n3_track_young_rotation or opts.min_seen <= 1:
         return lambda static, state, points, T_init: track_scan(static, state, points, T_init, opts)
     every = dataclasses.replace(opts, min_seen=1)   # every point (1: the settled program, its bar off)
@@ -176,11 +174,18 @@ class N3SlamStep:
         self.loops: list[dict] = []
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
         self.records: list[dict] = []            # per frame: the step's record (timings of each part)
+        self._waiting: dict = {}                 # map frame number -> (frame, record, pose): in flight
+        self._finished: list = []                # (frame, record, pose) finished, not yet returned to the loop
 
     def __getstate__(self) -> dict:
         """What a SLAM checkpoint keeps of the step (the map is saved beside it; the tracker and the viewer
         are the run's, set again on resume)."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("mapper", "track", "viewer")}
+        kept_out = ("mapper", "track", "viewer", "_waiting", "_finished")
+        return {k: v for k, v in self.__dict__.items() if k not in kept_out}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._waiting, self._finished = {}, []   # (a save settles the frames in flight first: `save_slam`)
 
     def _refine(self, points: np.ndarray):
         """The front end's `refine` for this frame: track against the map (none before the first frame)."""
@@ -189,8 +194,8 @@ class N3SlamStep:
             return None
 
         def refine(guess: np.ndarray):
-            # one grid: the map; submaps: the one whose path passes nearest, of TRACK_MIN_FRAMES at least
-            static, state, T = self.mapper.tracking_map(guess[:3, 3], min_frames=TRACK_MIN_FRAMES)
+            # one grid: the map; submaps: the one whose path passes nearest, of n3_track_submap_min_frames at least
+            static, state, T = self.mapper.tracking_map(guess[:3, 3], min_frames=self.cfg.n3_track_submap_min_frames)
             r = self.track(static, state, points, np.linalg.inv(T) @ guess)
             self.tracks.append({"tracked": True, "ok": bool(r.ok), "valid_fraction": float(r.valid_fraction),
                                 "rms_m": float(r.rms_m), "iterations": int(r.iterations),
@@ -199,7 +204,11 @@ class N3SlamStep:
 
         return refine
 
-    def __call__(self, frame: SlamFrame) -> tuple[dict, np.ndarray]:
+    def submit(self, frame: SlamFrame) -> list:
+        """The frame loop's `Steps.submit`: the front end (odometry, tracking) on this frame, then its map
+        frame dispatched without waiting for it, so that the next frame's odometry runs while the map
+        trains (its tracking waits for the map: it reads the state this frame makes). Returns the frames
+        whose map frame finished meanwhile, (frame, record, pose) each, oldest first."""
         try:
             # tracked with the map's own preprocessed points (cropped to its range, downsampled)
             pts = frame.prepared[0]
@@ -211,31 +220,59 @@ class N3SlamStep:
             self.mapped_at.append(None)
             self.counter.append(0)
             self.submap.append(0)
-            info = self._map(len(self.scans) - 1, r.pose)
-            record = dict(r.timings, map_s=info["total_s"], loss=info["loss"], loops=len(self.loops),
-                          ok=r.odometry_ok, tracked=r.refined)
+            record = dict(r.timings, loops=len(self.loops), ok=r.odometry_ok, tracked=r.refined)
+            n = self._map(len(self.scans) - 1, r.pose, wait=False)
+            self._waiting[n] = (frame, record, r.pose)
             if r.optimized:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
                 show_loop(self.viewer, self.fe, r)
             if self.pending:  # n3_loop_readd_per_frame a frame; the last frame re-adds those left
-                n = len(self.pending) if frame.position >= self.last else max(1, self.cfg.n3_loop_readd_per_frame)
-                record["readd_s"] = self.readd_pending(n)
-            self.records.append(record)
+                k = len(self.pending) if frame.position >= self.last else max(1, self.cfg.n3_loop_readd_per_frame)
+                record["readd_s"] = self.readd_pending(k)
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
             raise JaxmapError(f"jaxmap slam (map_kind n3) failed at frame {frame.index}: {type(e).__name__}: {e}") from e
-        return record, r.pose
+        return self._take_finished()
 
-    def _map(self, i: int, pose: np.ndarray, **kw) -> dict:
-        """Map frame i (of this run) at world pose [4, 4]; notes where its pairs went (submap, number, pose
-        in the submap's frame)."""
-        info = self.mapper.add_prepared(self.scans[i], pose, **kw)
-        self.submap[i] = int(info.get("submap") or 0)
-        self.counter[i] = int(info["frame"] if info.get("submap_frame") is None else info["submap_frame"])
+    def drain(self) -> list:
+        """The frame loop's `Steps.drain`: wait for the frames in flight; what `submit` returns."""
+        self.settle()
+        return self._take_finished()
+
+    def settle(self) -> None:
+        """Wait for every map frame in flight (their records go into `records`)."""
+        self._route(self.mapper.finish())
+
+    def _route(self, finished: list) -> None:
+        """Pair the map's records of finished frames ((record, kept) each) with the frames waiting for them
+        (a re-add's record has none waiting: its frame's record was made when it was first mapped)."""
+        for info, _ in finished:
+            entry = self._waiting.pop(int(info["frame"]), None)
+            if entry is not None:
+                entry[1].update(map_s=info["total_s"], loss=info["loss"])
+                self.records.append(entry[1])
+                self._finished.append(entry)
+
+    def _take_finished(self) -> list:
+        out, self._finished = self._finished, []
+        return out
+
+    def _map(self, i: int, pose: np.ndarray, wait: bool = True, **kw) -> int:
+        """Map frame i (of this run) at world pose [4, 4], finished before it returns unless not `wait`
+        (then frames in flight may remain); notes where its pairs went (submap, number, pose in the
+        submap's frame). Returns its number in the map."""
+        if wait:
+            self.settle()   # (`N3Mapper.add_prepared` is one frame's submit and finish: none may be in flight)
+        placed, done = self.mapper.submit_prepared(self.scans[i], pose, **kw)
+        self._route(done)
+        if wait:
+            self.settle()
+        self.submap[i] = int(placed.get("submap") or 0)
+        self.counter[i] = int(placed["frame"] if placed.get("submap_frame") is None else placed["submap_frame"])
         S = self.mapper.submaps.infos[self.submap[i]].pose if self.cfg.n3_loop == "submaps" else np.eye(4)
         self.mapped_at[i] = np.linalg.inv(S) @ pose
-        return info
+        return int(placed["frame"])
 
     @contextlib.contextmanager
     def _readding(self):
@@ -270,6 +307,7 @@ class N3SlamStep:
 
     def follow_loop(self, frame_index: int) -> dict:
         """Make the map follow the optimised trajectory (`n3_loop`); returns the loop's record."""
+        self.settle()
         if self.cfg.n3_loop == "submaps":
             return self.follow_loop_submaps(frame_index)
         traj = self.fe.trajectory()
@@ -392,6 +430,7 @@ def save_slam(step: N3SlamStep, out_dir: str) -> None:
     from jaxmap.checkpoint import steps
 
     ckpt = os.path.join(out_dir, "checkpoint")
+    step.settle()   # the frames in flight are in the map and their records in the state
     step.mapper.save(ckpt)
     path = os.path.join(out_dir, STATE_FILE)
     with open(path + ".tmp", "wb") as f:
