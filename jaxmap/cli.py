@@ -152,7 +152,7 @@ def _map_args(sub) -> None:
 
 def _mesh_args(sub) -> None:
     p = sub.add_parser("mesh", help="re-extract a mesh from a saved map")
-    p.add_argument("run", help="run directory")
+    p.add_argument("run", help="run directory of jaxmap map (or of jaxmap slam with map_kind n3)")
     p.add_argument("--res", type=float, default=None, help="marching-cubes resolution in metres")
     p.add_argument("--out", default=None, help="output mesh (default RUN/mesh_<res>.ply)")
 
@@ -184,6 +184,8 @@ def _slam_args(sub) -> None:
                    help="continue a map_kind n3 run stopped by Ctrl-C or SIGTERM from its saved state")
     _add_overwrite_arg(p)
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-mesh", action="store_true",
+                   help="trajectory, map and checkpoint only: no mesh, no reconstruction metrics (the ATE is kept)")
     _add_view_args(p)
 
 

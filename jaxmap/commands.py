@@ -140,7 +140,8 @@ def map(args) -> int:  # noqa: A001 - the command's name
 
 
 def mesh(args) -> int:
-    """`jaxmap mesh RUN [--res R] [--out PATH]`: a mesh of the newest intact checkpoint of a map run."""
+    """`jaxmap mesh RUN [--res R] [--out PATH]`: a mesh of the newest intact checkpoint of a map run (or of
+    an N3 SLAM run)."""
     from jaxmap.n3.submap_mapper import load_map
     from jaxmap.runs.n3 import no_usable_checkpoint
 
@@ -150,13 +151,15 @@ def mesh(args) -> int:
     if args.res is not None and not args.res > 0:
         raise ConfigError(f"--res {args.res:g}: must be > 0 (metres), e.g. --res 0.1")
     state = inspect(run)
-    if state.command not in (None, "map"):
-        raise DataError(f"{run}: holds a jaxmap {state.command} run; jaxmap mesh re-meshes jaxmap map runs")
+    n3_slam = state.command == "slam" and os.path.isfile(os.path.join(run, "n3_config.yaml"))  # map_kind n3
+    if state.command not in (None, "map") and not n3_slam:
+        raise DataError(f"{run}: holds a jaxmap {state.command} run; jaxmap mesh re-meshes jaxmap map runs and "
+                        "jaxmap slam runs of map_kind n3")
     try:
         mapper = load_map(os.path.join(run, "checkpoint"))
     except NoCheckpointError:
         raise CheckpointError(f"{run}: no checkpoint yet; map at least `checkpoint_every` frames first "
-                              f"(continue the run with: jaxmap map --resume {run})") from None
+                              f"(continue the run with: jaxmap {'slam' if n3_slam else 'map'} --resume {run})") from None
     except CheckpointError as e:
         raise no_usable_checkpoint(run, e) from None
     res = args.res or mapper.cfg.mesh.resolution_m
@@ -254,7 +257,7 @@ def slam(args) -> int:
     try:  # one writer; an existing run needs --resume or --overwrite
         with claim(cfg.output, "slam", resume=bool(args.resume), overwrite=args.overwrite):
             out = run_slam(cfg, cfg.output, progress=cfg.progress and not args.no_progress, view=view_options(args),
-                           resume=bool(args.resume))
+                           resume=bool(args.resume), mesh=not getattr(args, "no_mesh", False))
     except KeyboardInterrupt as e:
         return exit_code(e)
     brief = {k: out[k] for k in ("run", "frames", "keyframes", "mesh") if k in out}

@@ -132,11 +132,11 @@ def assert_same_run(ref, cut, frames: int):
 
 def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small_noisy_city, tmp_path, monkeypatch,
                                                                           capsys):
-    """`jaxmap slam` on submaps (tracking on), stopped by SIGINT after frame 8 of 16, then `--resume`d:
-    the same trajectory (to 1e-9 m: KISS-ICP's own run-to-run noise is 1e-15) and the same map (SDF at
-    points along the drive to 1e-5 m) as the run without the stop. Without the front end's state (a
-    fresh KISS-ICP, a new pose graph) the trajectory jumps by centimetres; without the map's, tracking
-    and the map differ."""
+    """`jaxmap slam --no-mesh` on submaps (tracking on), stopped by SIGINT after frame 8 of 16, then
+    `--resume`d: the same trajectory (to 1e-9 m: KISS-ICP's own run-to-run noise is 1e-15) and the same map
+    (SDF at points along the drive to 1e-5 m) as the run without the stop; `jaxmap mesh` meshes it. Without
+    the front end's state (a fresh KISS-ICP, a new pose graph) the trajectory jumps by centimetres; without
+    the map's, tracking and the map differ."""
     import json
     import os
     import signal
@@ -145,8 +145,8 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     from jaxmap.runs import slam_n3 as n3slam
 
     sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=16", "n3_loop=submaps",
-                                   "n3_submap_m=6", "n3.eval.n_samples=20000", "n3.mesh.resolution_m=0.2")]
-    base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", *sets]
+                                   "n3_submap_m=6")]
+    base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", "--no-mesh", *sets]
     ref, cut = tmp_path / "ref", tmp_path / "cut"
     assert main([*base, "--out", str(ref)]) == 0
     step = n3slam.N3SlamStep.submit
@@ -165,6 +165,8 @@ def test_slam_stopped_by_ctrl_c_and_resumed_gives_the_run_without_the_stop(small
     assert main(["slam", "--resume", str(cut), "--no-progress"]) == 0
     ma, mb = assert_same_run(ref, cut, 16)
     assert len(ma.submaps.infos) == len(mb.submaps.infos) >= 2
+    assert not (ref / "mesh.ply").exists() and not (ref / "metrics.json").exists()   # --no-mesh
+    assert main(["mesh", str(cut), "--res", "0.2"]) == 0 and (cut / "mesh_0.2.ply").stat().st_size > 10_000
     ja, jb = (json.loads((r / "slam.json").read_text()) for r in (ref, cut))
     assert ja["frames"] == jb["frames"] == 16 and ja["tracked_ok"] == jb["tracked_ok"]
 
@@ -201,9 +203,8 @@ def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_cit
     from jaxmap.cli import main
     from jaxmap.runs.slam_n3 import SCANS_DIR, STATE_FILE
 
-    sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=14", "checkpoint_every=4",
-                                   "n3.eval.n_samples=20000", "n3.mesh.resolution_m=0.2")]
-    base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", *sets]
+    sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=14", "checkpoint_every=4")]
+    base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", "--no-mesh", *sets]
     ref, cut = tmp_path / "ref", tmp_path / "cut"
     assert main([*base, "--out", str(ref)]) == 0
     proc = subprocess.Popen([sys.executable, "-c", SLOW_SLAM, *base, "--out", str(cut)],

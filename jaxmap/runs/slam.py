@@ -216,15 +216,16 @@ def run_external(cfg: SlamConfig, seq, out_dir: str, mapper, progress: bool = Tr
 
 
 def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
-             view: dict | None = None, resume: bool = False) -> dict:
+             view: dict | None = None, resume: bool = False, mesh: bool = True) -> dict:
     """view: {"port", "mesh_every"} for a live viewer (`jaxmap.frame_loop.open_viewer`), None = none.
-    resume: go on from the run's SLAM checkpoint in out_dir (map_kind n3; `jaxmap.runs.slam_n3.load_slam`)."""
+    resume: go on from the run's SLAM checkpoint in out_dir (map_kind n3; `jaxmap.runs.slam_n3.load_slam`).
+    mesh=False: no mesh and no reconstruction metrics at the end (`jaxmap slam --no-mesh`)."""
     t_start = time.perf_counter()
     os.makedirs(out_dir, exist_ok=True)
     if not resume:
         save_config(cfg, os.path.join(out_dir, "config.yaml"))
     if cfg.map_kind == "n3":
-        return run_slam_n3(cfg, out_dir, progress, evaluate, view, resume=resume)
+        return run_slam_n3(cfg, out_dir, progress, evaluate, view, resume=resume, mesh=mesh)
     if resume:
         raise JaxmapError(f"--resume {out_dir}: a map_kind {cfg.map_kind} run is not checkpointed (map_kind n3 "
                           "runs are); start it again with --overwrite")
@@ -239,16 +240,16 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
     traj = np.asarray(res["trajectory"])
     out = {"run": out_dir, "frames": len(seq), "keyframes": len(mapper.store), "loops": res["loops"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
-    rec = finish_run(mapper, icfg, out_dir, loop, evaluate=evaluate, viewer=viewer)
+    rec = finish_run(mapper, icfg, out_dir, loop, evaluate=evaluate, viewer=viewer, mesh=mesh)
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     if cfg.n3_config:
-        out["n3"] = n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress)
+        out["n3"] = n3_from_poses(cfg, seq, traj, os.path.join(out_dir, "n3"), progress, mesh=mesh)
     write_slam_summary(out_dir, out)
     return out
 
 
 def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,
-                view: dict | None = None, track=None, resume: bool = False) -> dict:
+                view: dict | None = None, track=None, resume: bool = False, mesh: bool = True) -> dict:
     """`map_kind: n3` (`jaxmap.runs.slam_n3`): the N3 map of `n3_config`, mapped online at the tracked poses
     and following each loop correction. Leaves what `run_slam` does, the map being N3's (checkpoint/
     `N3Mapper.load`s; n3_config.yaml is the map's resolved config). track: a tracker in place of
@@ -273,7 +274,7 @@ def run_slam_n3(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: 
            "tracking": res["tracking"],
            "step": res["step_medians"],
            **_write_trajectories(out_dir, seq, traj, res["odometry"], evaluate)}
-    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer,
+    rec = finish_run(mapper, mapper.cfg, out_dir, res["loop"], evaluate=evaluate, viewer=viewer, mesh=mesh,
                      extra=PROGRAMS.compiles_since(n_compiles))
     out.update({k: v for k, v in rec.items() if k not in ("run", "peak_rss_mb")})
     # the SLAM run's saves are the step's (save_slam), not the map's own: its record would say 0
@@ -304,15 +305,16 @@ def _write_trajectories(out_dir: str, seq, traj: np.ndarray, odometry: np.ndarra
     return out
 
 
-def n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool, desc: str = "optimised poses") -> dict:
+def n3_from_poses(cfg: SlamConfig, seq, poses, out_dir: str, progress: bool, desc: str = "optimised poses",
+                  mesh: bool = True) -> dict:
     """The N3 map of the same frames at `poses` [N,4,4] (the optimised ones in `run_slam`) (written as a KITTI pose file beside a
-    symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead)."""
+    symlinked copy of the data would be clumsy: the mapper is fed frame by frame instead); mesh=False: not meshed."""
     from jaxmap.runs.n3 import map_at_poses
 
     os.makedirs(out_dir, exist_ok=True)
     mapper, loop = map_at_poses(n3_map_config(cfg, out_dir), seq, poses, progress, f"n3 ({desc})")
     save_config(mapper.cfg, os.path.join(out_dir, "config.yaml"))
-    return finish_run(mapper, mapper.cfg, out_dir, loop)
+    return finish_run(mapper, mapper.cfg, out_dir, loop, mesh=mesh)
 
 
 def _jsonable(x):
