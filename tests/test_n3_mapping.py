@@ -120,8 +120,8 @@ def test_ctrl_c_leaves_a_checkpoint_and_resume_finishes_the_same_map(small_city,
     from jaxmap.cli import main
     from jaxmap.frame_loop import SubmitSteps
 
-    args = ["--no-progress", "--data", str(small_city), "--set", "data.end_frame=4", "--set", "train.iters=3",
-            "--set", "train.nv=64", "--set", "eval.n_samples=20000", "--set", "mesh.resolution_m=0.2"]
+    args = ["--no-progress", "--no-mesh", "--data", str(small_city), "--set", "data.end_frame=4", "--set",
+            "train.iters=3", "--set", "train.nv=64"]
     assert main(["map", "configs/city.yaml", "--out", str(tmp_path / "full")] + args) == 0
 
     real = SubmitSteps.submit  # where the frame loop hands each frame to the map
@@ -138,7 +138,7 @@ def test_ctrl_c_leaves_a_checkpoint_and_resume_finishes_the_same_map(small_city,
     meta = json.loads((tmp_path / "cut" / "checkpoint" / "2" / "meta.json").read_text())
     assert meta["frame"] == 2
     monkeypatch.setattr(SubmitSteps, "submit", real)
-    assert main(["map", "--resume", str(tmp_path / "cut"), "--no-progress"]) == 0
+    assert main(["map", "--resume", str(tmp_path / "cut"), "--no-progress", "--no-mesh"]) == 0
     a = N3Mapper.load(str(tmp_path / "full" / "checkpoint"))
     b = N3Mapper.load(str(tmp_path / "cut" / "checkpoint"))
     assert int(b.state.frame) == 4
