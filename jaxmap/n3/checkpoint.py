@@ -108,23 +108,25 @@ def expand(static: n3state.N3Static, cfg: MapConfig, caps: n3state.Capacities, c
     state = n3state.init_state(static, cfg, caps)
     nv, nr, nb = int(c["n"]["voxels"]), int(c["n"]["rows"]), int(c["n"]["blocks"])
 
+    # Every size here is the checkpoint's own (a map of submaps restores one per submap): the keys are padded
+    # to a power of two and the arrays filled on the host, so no program is compiled per count.
     def table(empty, keys):
-        if len(keys) == 0:
+        n = len(keys)
+        if n == 0:
             return empty
-        t, rows, over = hashing.insert(empty, jnp.asarray(keys))
-        if bool(over) or not np.array_equal(np.asarray(rows), np.arange(len(keys))):
+        padded = np.zeros((1 << (n - 1).bit_length(), keys.shape[1]), np.int32)
+        padded[:n] = keys
+        t, rows, over = hashing.insert(empty, jnp.asarray(padded), jnp.asarray(np.arange(len(padded)) < n))
+        if bool(over) or not np.array_equal(np.asarray(rows)[:n], np.arange(n)):
             raise RuntimeError("checkpoint: a hash table did not rebuild to its saved rows; please report this bug")
         return t
 
-    def put(arr, vals, n):
-        return arr.at[:n].set(jnp.asarray(vals[:n])) if n else arr
-
     st = state.store
-    slots = jnp.asarray(c["store_slots"][:nb])
+    slots = np.asarray(c["store_slots"][:nb])
     saved = dict(c["store"])
     if "last_hit" not in saved:  # a checkpoint from before free-space carving: every block counts as just hit
         saved["last_hit"] = np.full((max(nb, 1),), int(np.asarray(c["frame"])) - 1, np.int32)
-    blocks = {k: getattr(st, k).at[slots].set(jnp.asarray(saved[k][:nb])) for k in _STORE_BLOCK_FIELDS}
+    blocks = {k: put_at(getattr(st, k), slots, saved[k][:nb]) for k in _STORE_BLOCK_FIELDS}
     store = st.replace(**blocks, slot_of_voxel=put(st.slot_of_voxel, c["slot_of_voxel"], nv),
                        window_ids=jnp.asarray(c["window_ids"]), window_n=jnp.asarray(c["window_n"]))
     as_j = functools.partial(jax.tree_util.tree_map, jnp.asarray)
@@ -148,13 +150,25 @@ def expand(static: n3state.N3Static, cfg: MapConfig, caps: n3state.Capacities, c
     )
 
 
+def put(arr, vals, n: int):
+    """arr [M, ...] (a device array) with its first n rows set to vals[:n], filled on the host."""
+    return put_at(arr, np.arange(n), vals[:n]) if n else arr
+
+
+def put_at(arr, rows: np.ndarray, vals):
+    """arr [M, ...] with rows [K] (host ints) set to vals [K, ...], filled on the host (an eager scatter would
+    compile a program for every K)."""
+    host = np.array(arr)
+    host[rows] = np.asarray(vals, host.dtype)
+    return jnp.asarray(host)
+
+
 def _expand_evidence(empty, c: dict, nv: int):
     """The free-space evidence back (None when off; a checkpoint from before it: none seen yet)."""
     if empty is None or "evidence" not in c or nv == 0:
         return empty
     e = c["evidence"]
-    return empty.replace(free_run=empty.free_run.at[:nv].set(jnp.asarray(e["free_run"][:nv])),
-                         raised=empty.raised.at[:nv].set(jnp.asarray(e["raised"][:nv])))
+    return empty.replace(free_run=put(empty.free_run, e["free_run"], nv), raised=put(empty.raised, e["raised"], nv))
 
 
 def _expand_pool(empty, c: dict):
@@ -164,8 +178,8 @@ def _expand_pool(empty, c: dict):
     n = int(c["n"].get("pool", 0)) if "pool" in c else 0
     if n == 0:
         return empty
-    return empty.replace(**{k: getattr(empty, k).at[:n].set(jnp.asarray(c["pool"][k][:n]))
-                            for k in ("pairs", "surface", "frame", "voxel_row")}, n=jnp.int32(n))
+    return empty.replace(**{k: put(getattr(empty, k), c["pool"][k], n) for k in ("pairs", "surface", "frame", "voxel_row")},
+                         n=jnp.int32(n))
 
 
 def meta_of(cfg: MapConfig, state: n3state.N3State, timings: list, extra: dict | None = None) -> dict:
