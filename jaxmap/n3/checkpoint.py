@@ -152,12 +152,12 @@ def expand(static: n3state.N3Static, cfg: MapConfig, caps: n3state.Capacities, c
 
 def put(arr, vals, n: int):
     """arr [M, ...] (a device array) with its first n rows set to vals[:n], filled on the host."""
-    return put_at(arr, np.arange(n), vals[:n]) if n else arr
+    return put_at(arr, slice(0, n), vals[:n]) if n else arr
 
 
-def put_at(arr, rows: np.ndarray, vals):
-    """arr [M, ...] with rows [K] (host ints) set to vals [K, ...], filled on the host (an eager scatter would
-    compile a program for every K)."""
+def put_at(arr, rows, vals):
+    """arr [M, ...] with rows (host ints [K], or a slice of K rows) set to vals [K, ...], filled on the host
+    (an eager scatter would compile a program for every K)."""
     host = np.array(arr)
     host[rows] = np.asarray(vals, host.dtype)
     return jnp.asarray(host)

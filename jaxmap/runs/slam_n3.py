@@ -262,8 +262,6 @@ class N3SlamStep:
         """Map frame i (of this run) at world pose [4, 4], finished before it returns unless not `wait`
         (then frames in flight may remain); notes where its pairs went (submap, number, pose in the
         submap's frame). Returns its number in the map."""
-        if wait:
-            self.settle()   # (`N3Mapper.add_prepared` is one frame's submit and finish: none may be in flight)
         placed, done = self.mapper.submit_prepared(self.scans[i], pose, **kw)
         self._route(done)
         if wait:
