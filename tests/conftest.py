@@ -4,11 +4,14 @@ worker), and the compiled programs dropped after each test module.
 An xdist worker runs half the suite in one process, and every XLA:CPU executable keeps its machine
 code in memory maps (a frame program about 2,000): kept for the whole session they reached 64,400 of
 the 65,530 maps Linux allows a process (vm.max_map_count), and past it XLA aborts the worker inside a
-compile or a cache load (`Fatal Python error: Aborted`, seen in CI). Each worker compiles into its own
-folder, `tests-<worker>`, of the XLA cache that `JAXMAP_CACHE_DIR` names (the user's per-CPU cache of
-`jaxmap.compile_cache` when unset; empty: no cache), so no two processes write one entry. `make test`
-points it at an empty folder made for the run, as a new machine has; warm, the cache saves half the
-suite's time (`make test TEST_CACHE=warm`)."""
+compile or a cache load (`Fatal Python error: Aborted`, seen in CI). Both workers, their CLI
+subprocesses and notebook kernels compile into one folder, `tests`, of the XLA cache that
+`JAXMAP_CACHE_DIR` names (the user's per-CPU cache of `jaxmap.compile_cache` when unset; empty: no
+cache), so a program one worker compiled the other loads (a folder per worker: 939 s for the suite,
+one shared: 890 s). JAX writes an entry in place, so a worker may read one the other is still
+writing: its load fails, JAX warns and compiles the program itself (`jax._src.compiler._cache_read`),
+which costs a compile and fails nothing. `make test` points it at an empty folder made for the run,
+as a new machine has; warm, the cache saves half the suite's time (`make test TEST_CACHE=warm`)."""
 import os
 
 import pytest
@@ -17,9 +20,10 @@ from jaxmap import compile_cache  # noqa: E402  (jax itself is not imported yet:
 
 _CACHE = compile_cache.cache_dir()
 if _CACHE:
-    _WORKER_CACHE = os.path.join(_CACHE, "tests-" + os.environ.get("PYTEST_XDIST_WORKER", "main"))
-    os.environ["JAXMAP_CACHE_DIR"] = _WORKER_CACHE        # for the CLI subprocesses and notebook kernels
-    os.environ["JAX_COMPILATION_CACHE_DIR"] = _WORKER_CACHE  # for this process
+    # (the workers inherit the folder the controller set: it is not nested again)
+    _TEST_CACHE = _CACHE if os.path.basename(_CACHE) == "tests" else os.path.join(_CACHE, "tests")
+    os.environ["JAXMAP_CACHE_DIR"] = _TEST_CACHE        # for the CLI subprocesses and notebook kernels
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _TEST_CACHE  # for this process
     # every program, also those that compile in under 0.5 s: each module drops its compiled programs (below),
     # and the next module loads them from the cache instead of compiling them again
     os.environ["JAXMAP_CACHE_MIN_COMPILE_S"] = "0"                 # (jaxmap.compile_cache.enable, the CLI)
