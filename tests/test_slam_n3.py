@@ -157,7 +157,7 @@ def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_r
     frames that moved more than n3_loop_min_move_m, largest move first); each re-add removes that frame's
     old pairs (by its number in the map) and maps it at its optimised pose; a second loop before the queue
     is empty queues no frame twice; with 0 the loop re-adds every moved frame at once."""
-    from jaxmap.runs.slam_n3 import N3SlamStep
+    from jaxmap.n3.following import FollowingMap, FollowRule
 
     class Map:
         frames = 0
@@ -177,44 +177,37 @@ def test_a_loop_queues_its_moved_frames_largest_move_first_and_the_next_frames_r
         def finish(self):
             return []
 
-    class Front:
-        def __init__(self, traj):
-            self.traj = traj
+    moves = [0.0, 0.05, 0.01, 0.30, 0.10]        # frame 2 moved less than min_move_m (0.02)
+    poses = np.stack([_shift(np.eye(4), m) for m in moves])
 
-        def trajectory(self):
-            return self.traj
+    def following(per_frame):
+        fm = FollowingMap(Map(), FollowRule("moved", 0.02, per_frame))
+        for i in range(5):
+            fm.add(f"scan{i}", np.eye(4))
+        fm.counter = [40, 41, 42, 43, 44]
+        fm.mapper.added.clear()
+        return fm
 
-    def step(per_frame):
-        s = N3SlamStep.__new__(N3SlamStep)
-        moves = [0.0, 0.05, 0.01, 0.30, 0.10]        # frame 2 moved less than n3_loop_min_move_m (0.02)
-        s.cfg = load_config("configs/city_slam.yaml", ["n3_loop=moved", f"n3_loop_readd_per_frame={per_frame}"],
-                            schema=SlamConfig)
-        s.mapper, s.readds, s.pairs_removed, s.pending = Map(), 0, 0, []
-        s.records, s._waiting, s._finished = [], {}, []
-        s.mapped_at = [np.eye(4) for _ in moves]
-        s.fe = Front(np.stack([_shift(np.eye(4), m) for m in moves]))
-        s.scans, s.counter, s.submap = [f"scan{i}" for i in range(5)], [40, 41, 42, 43, 44], [0] * 5
-        return s
-
-    s = step(2)
-    rec = s.follow_loop(7)
+    s = following(2)
+    rec = s.correct(poses)
     assert rec["queued"] == 3 and s.pending == [3, 4, 1] and s.mapper.added == []
-    assert s.readd_pending(2) >= 0 and s.pending == [1]
+    assert s.readd(2, poses) >= 0 and s.pending == [1]
     assert s.mapper.forgot == [[43], [44]] and s.mapper.added == [("scan3", 0.30), ("scan4", 0.10)]
     assert s.readds == 2 and s.pairs_removed == 20
-    s.follow_loop(8)                                   # frames 3 and 4 are at their poses now; 1 still queued
+    s.correct(poses)                                   # frames 3 and 4 are at their poses now; 1 still queued
     assert s.pending == [1]
-    s.readd_pending(5)
-    assert s.pending == [] and s.mapper.added[-1] == ("scan1", 0.05) and s.counter[1] == 2
+    s.readd(5, poses)
+    assert s.pending == [] and s.mapper.added[-1] == ("scan1", 0.05) and s.counter[1] == 7
 
-    s = step(0)
-    rec = s.follow_loop(7)
+    s = following(0)
+    rec = s.correct(poses)
     assert rec["reintegrated"] == 3 and s.pending == [] and len(s.mapper.added) == 3
 
 
 def test_a_slam_state_saved_before_the_step_moved_to_the_run_layer_still_loads():
     """slam_state.pkl names the step's class by module: one written while it was `jaxmap.slam.n3slam`
-    (before `jaxmap slam`'s orchestration moved to `jaxmap.runs`) loads as today's `N3SlamStep`."""
+    (before `jaxmap slam`'s orchestration moved to `jaxmap.runs`, and the frames the map follows corrections
+    with were the step's) loads as today's `N3SlamStep`."""
     import io
     import pickle
 
@@ -227,4 +220,5 @@ def test_a_slam_state_saved_before_the_step_moved_to_the_run_layer_still_loads()
     with pytest.raises(ModuleNotFoundError):
         pickle.loads(old)
     back = slam_n3._StateUnpickler(io.BytesIO(old)).load()["step"]
-    assert type(back) is slam_n3.N3SlamStep and back.counter == [3, 4] and back.pending == [1]
+    # and its frames, the step's own then, are its map's now (`FollowingMap`)
+    assert type(back) is slam_n3.N3SlamStep and back.map.counter == [3, 4] and back.map.pending == [1]

@@ -1,13 +1,13 @@
-"""`jaxmap slam` with `n3_loop: submaps` (jaxmap.runs.slam_n3): a loop correction moves each submap as a
-rigid body by its frames' correction (not its inverse), each pass maps into submaps of its own, and the
-frames of the submap being mapped that still moved against it are re-added."""
+"""`jaxmap slam` with `n3_loop: submaps` (jaxmap.runs.slam_n3, jaxmap.n3.following): a loop correction
+moves each submap as a rigid body by its frames' correction (not its inverse), each pass maps into
+submaps of its own, and the frames of the submap being mapped that still moved against it are re-added."""
 import numpy as np
 
 from analytic_lidar import corridor_scan, pose_at
 from jaxmap.config import SlamConfig, load_config
 from jaxmap.n3 import scan
 from jaxmap.n3.submap_mapper import SubmapMapper
-from jaxmap.runs.slam_n3 import N3SlamStep, submap_pose
+from jaxmap.n3.following import FollowingMap, FollowRule, submap_pose
 
 SMALL = ["train.iters=6", "train.nv=128", "train.np_per_voxel=8", "preprocess.max_range_m=10.0",
          "preprocess.vox_down_m=0.2", "window.initial_blocks=4096", "mesh.min_component_faces=0",
@@ -34,16 +34,6 @@ def test_submap_pose_fits_the_frames_correction():
     assert err.max() < np.linalg.norm((G @ local)[:, :3, 3] - bent[:, :3, 3], axis=1).max() + 1e-9
 
 
-class _Trajectory:
-    """A front end whose optimised trajectory is given (what the pose graph would return)."""
-
-    def __init__(self, traj):
-        self.traj = traj
-
-    def trajectory(self):
-        return self.traj
-
-
 def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     """20 frames of a corridor in submaps of 6 m driven; the 'pose graph' then turns the first submaps'
     frames by 25 degrees and shifts them, the last submap's frames by another correction, and bends two
@@ -55,15 +45,12 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     mcfg = load_config("configs/city.yaml", SMALL)
     frames = [(corridor_scan(1.0 * i, max_range=10.0), pose_at(1.0 * i)) for i in range(20)]
     m = SubmapMapper(mcfg, first_scan=frames[0], directory=str(tmp_path / "subs"))
-    step = N3SlamStep(cfg, frames[0][1], m)
+    fm = FollowingMap(m, FollowRule.of(cfg))
     for i, (pts, pose) in enumerate(frames):
         p, n, _, img = scan.preprocess(pts, np.eye(4), m.cfg.preprocess, i, image=m.static.evidence)
-        step.scans.append(scan.PreparedScan(p, n, img))
-        step.mapped_at.append(None)
-        step.counter.append(0)
-        step.submap.append(0)
-        step._map(i, pose)
-    sub = np.asarray(step.submap)
+        fm.add(scan.PreparedScan(p, n, img), pose)
+        fm.settle()
+    sub = np.asarray(fm.submap)
     assert len(set(sub)) >= 3 and np.all(np.diff(sub) >= 0), sub
     last = sub[-1]
     wall = np.stack([np.linspace(0.5, 18.5, 60), np.full(60, 6.0), np.full(60, 1.0)], 1)
@@ -75,14 +62,13 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     bent = [i for i in range(20) if sub[i] == last][:2]
     for i in bent:
         traj[i, 1, 3] += 0.05
-    step.fe = _Trajectory(traj)
-    rec = step.follow_loop(frame_index=19)
+    rec = fm.correct(traj)
     assert rec["queued"] == 2 and rec["left_beyond_elsewhere"] == 0 and rec["submaps_moved"] == len(set(sub)), rec
-    assert step.pending == bent
+    assert fm.pending == bent
     for k in set(sub):
         idx = sub == k
-        got = m.submaps.infos[k].pose @ step.mapped_at[np.nonzero(idx)[0][0]]
-        fit = submap_pose(traj[idx], np.stack([step.mapped_at[i] for i in np.nonzero(idx)[0]]))
+        got = m.submaps.infos[k].pose @ fm.mapped_at[np.nonzero(idx)[0][0]]
+        fit = submap_pose(traj[idx], np.stack([fm.mapped_at[i] for i in np.nonzero(idx)[0]]))
         np.testing.assert_allclose(m.submaps.infos[k].pose, fit, atol=1e-9)
         if k != last:  # a rigid correction: exact
             np.testing.assert_allclose(got, traj[np.nonzero(idx)[0][0]], atol=1e-9)
@@ -98,14 +84,14 @@ def test_a_loop_moves_each_submap_by_its_correction_not_its_inverse(tmp_path):
     # the two bent frames re-added, one after each frame: their old pairs gone, they sit at their poses
     removed, forget = [], m.forget_frames
     m.forget_frames = lambda fr: removed.append((list(fr), forget(fr))) or removed[-1][1]
-    old_counts = [step.counter[i] for i in bent]
+    old_counts = [fm.counter[i] for i in bent]
     for _ in bent:
-        step.readd_pending()
-    assert not step.pending
+        fm.readd(1, traj)
+    assert not fm.pending
     assert [r[0] for r in removed] == [[c] for c in old_counts] and all(r[1] > 0 for r in removed), removed
     for i in bent:
-        np.testing.assert_allclose(m.submaps.infos[last].pose @ step.mapped_at[i], traj[i], atol=1e-9)
-        assert step.submap[i] == last
+        np.testing.assert_allclose(m.submaps.infos[last].pose @ fm.mapped_at[i], traj[i], atol=1e-9)
+        assert fm.submap[i] == last
     # a frame added again is on the submap's path once (appended again, it would lengthen the path driven)
     assert len(m.submaps.infos[last].path) == int(np.sum(sub == last))
 

@@ -156,6 +156,14 @@ class ImtMapper:
         self.remaps.append({"keyframes": len(changed), "time_s": time.perf_counter() - t0})
         return changed
 
+    def correct(self, poses) -> dict:
+        """Follow a pose correction: poses [K, 4, 4], every keyframe's, in the order added (the map's side
+        of the protocol `jaxmap.n3.following.FollowingMap.correct` keeps for N3). Returns its record: the
+        keyframes moved (remapped) and "map_s", the seconds it took."""
+        t0 = time.perf_counter()
+        changed = self.remap(poses)
+        return {"keyframes_moved": len(changed), "keyframes": len(self.store), "map_s": time.perf_counter() - t0}
+
     # -- outputs --
     def mesh(self, resolution: int | None = None):
         c = self.cfg.mesh

@@ -126,14 +126,12 @@ def _failed_at(mapper, out_dir: str, frame: int, err: Exception) -> JaxmapError:
 def _close_loop(cfg, mapper, poses, out_dir, n, record):
     if cfg.mesh_at_loops:
         mapper.mesh().export(os.path.join(out_dir, f"loop_{n}_before.ply"))
-    t0 = time.perf_counter()
-    changed = mapper.remap(poses)
-    record.update({"remap_s": time.perf_counter() - t0, "keyframes_moved": len(changed),
-                   "keyframes": len(mapper.store)})
+    corrected = mapper.correct(poses)
+    record.update(remap_s=corrected.pop("map_s"), **corrected)
     if cfg.mesh_at_loops:
         mapper.mesh().export(os.path.join(out_dir, f"loop_{n}_after.ply"))
     log.info("loop %d at frame %d: optimised in %.2f s, %d of %d keyframes remapped in %.2f s", n, record["frame"],
-             record.get("optimize_s", 0.0), len(changed), len(mapper.store), record["remap_s"])
+             record.get("optimize_s", 0.0), record["keyframes_moved"], record["keyframes"], record["remap_s"])
     return record
 
 

@@ -11,20 +11,15 @@ Per frame of the sequence (`N3SlamStep`, the `Steps` of `jaxmap.frame_loop.run_f
      graph node and the loop search start from it), else the odometry pose is kept;
   3. the frame goes into the N3 map at that pose (`N3Mapper.submit_prepared`, the frame program of
      `jaxmap map`), and its record comes back with the next frame's;
-  4. when a loop is accepted and the pose graph moves the frames, the map follows (`n3_loop`):
-     `submaps`: the map is a chain of submaps (`SubmapMapper`, a new one every `n3_submap_m`, each pass
-     through a street its own), and each submap is moved as a rigid body to the pose that fits its frames'
-     corrections best (`submap_pose`: no re-training; the passes of a loop are blended, not trained into
-     one grid); the frames of the submap being mapped that still moved against it by more than
-     `n3_loop_min_move_m` are re-added, one after each of the next frames (in the background of the loop,
-     not all at once); `rebuild` empties the map and integrates every frame so far again at its
-     optimised pose (when any frame moved more than `n3_loop_min_move_m`); `moved` queues the frames
-     whose position moved more than that, largest move first, and re-adds `n3_loop_readd_per_frame` of
-     them after each of the next frames (a re-add removes the frame's stored training pairs,
-     `N3Mapper.forget_frames`, and adds the frame again at its optimised pose; 0: all of them at the
-     loop, which stalled the main thread 27-42 s on the suite's streets); `none` leaves the map as
-     mapped (an ablation). docs/slam.md has the measurements that chose between them.
-The preprocessed scans (sensor frame) of every frame are kept for step 4, one file a frame in the run's
+  4. when a loop is accepted and the pose graph moves the frames, the map follows with one call,
+     `FollowingMap.correct(trajectory)` (`jaxmap.n3.following`, by `n3_loop`): `submaps` moves each
+     submap as a rigid body to fit its frames' corrections (no re-training) and re-adds the frames of the
+     submap being mapped that still moved against it; `moved` queues the frames that moved more than
+     `n3_loop_min_move_m`, largest move first, and re-adds `n3_loop_readd_per_frame` of them after each
+     of the next frames (0: all at the loop, which stalled the main thread 27-42 s on the suite's
+     streets); `rebuild` maps every frame again; `none` leaves the map (an ablation). docs/slam.md has the
+     measurements that chose between them.
+The map keeps every frame's preprocessed scan (sensor frame) for step 4, one file a frame in the run's
 slam_scans/ (`ScanStore`: ~1.5 MB a frame, two in memory).
 
 Every `checkpoint_every` frames, a run stopped by Ctrl-C or SIGTERM (between two frames) and a finished
@@ -35,12 +30,10 @@ the run would have made without the stop, also after kill -9 (from the last save
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import logging
 import os
 import pickle
-import time
 
 import numpy as np
 
@@ -48,13 +41,14 @@ from jaxmap.config import MapConfig, SlamConfig, load_config, validate
 from jaxmap.errors import CheckpointError, JaxmapError
 from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, run_frames
 from jaxmap.records import medians
-from jaxmap.geometry import compose, orthonormalize
+from jaxmap.geometry import compose
 from jaxmap.n3 import scan
+from jaxmap.n3.following import FollowingMap, FollowRule
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart, PreparedScan
+from jaxmap.n3.scan_store import ScanStore
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
-from jaxmap.slam.scan_store import ScanStore
 
 log = logging.getLogger("jaxmap")
 
@@ -133,42 +127,15 @@ def show_loop(viewer, fe: FrontEnd, r) -> None:
         viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
 
 
-def pose_moved(a: np.ndarray, b: np.ndarray) -> float:
-    """Distance (m) between the positions of two poses [4,4]."""
-    return float(np.linalg.norm(np.asarray(a)[:3, 3] - np.asarray(b)[:3, 3]))
-
-
-def submap_pose(world: np.ndarray, local: np.ndarray) -> np.ndarray:
-    """T_world_local [4, 4] of the rigid body that best carries a submap's frames from their poses in its
-    frame, local [K, 4, 4], to their (optimised) world poses world [K, 4, 4]: the rotation is the chordal
-    mean of the frames' R_world R_local^T, the translation the mean of t_world - R t_local (least squares
-    for that rotation). With one frame, or a correction that is rigid over the submap, it is exact."""
-    world, local = np.asarray(world, np.float64), np.asarray(local, np.float64)
-    M = np.einsum("kij,klj->il", world[:, :3, :3], local[:, :3, :3])   # sum_k R_w,k R_l,k^T
-    T = np.eye(4)
-    T[:3, :3] = orthonormalize(M)
-    T[:3, 3] = np.mean(world[:, :3, 3] - local[:, :3, 3] @ T[:3, :3].T, axis=0)
-    return T
-
-
 class N3SlamStep:
     """The frame-loop step of `map_kind: n3` (see the module docstring).
     track: fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
 
-    readds = pairs_removed = 0   # (a step pickled before these were counted resumes with them at 0)
-
     def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None, viewer=None,
                  scans: ScanStore | None = None):
-        self.cfg, self.mapper, self.track, self.viewer = cfg, mapper, track, viewer
+        self.cfg, self.track, self.viewer = cfg, track, viewer
         self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
-        self.scans = scans if scans is not None else ScanStore()   # per frame: its PreparedScan (sensor frame)
-        self.mapped_at: list[np.ndarray] = []    # per frame: the pose its pairs are in the map at (in its
-                                                 # submap's frame with n3_loop submaps, else the world's)
-        self.counter: list[int] = []             # per frame: its number in its map (pairs carry it)
-        self.submap: list[int] = []              # per frame: its submap (0: one grid)
-        self.pending: list[int] = []             # frames a loop moved, to re-add (n3_loop_readd_per_frame a frame)
-        self.readds = 0                          # frames re-added after loops, and the old pairs they removed
-        self.pairs_removed = 0
+        self.map = FollowingMap(mapper, FollowRule.of(cfg), scans)   # the map and its frames (step 4)
         self.last = np.inf                       # the position of the sequence's last frame (run_n3_frontend)
         self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
         self.loops: list[dict] = []
@@ -177,13 +144,36 @@ class N3SlamStep:
         self._waiting: dict = {}                 # map frame number -> (frame, record, pose): in flight
         self._finished: list = []                # (frame, record, pose) finished, not yet returned to the loop
 
+    @property
+    def mapper(self) -> N3Mapper:
+        return self.map.mapper
+
+    @mapper.setter
+    def mapper(self, value: N3Mapper) -> None:
+        self.map.mapper = value
+
+    @property
+    def scans(self) -> ScanStore:
+        return self.map.scans
+
     def __getstate__(self) -> dict:
         """What a SLAM checkpoint keeps of the step (the map is saved beside it; the tracker and the viewer
         are the run's, set again on resume)."""
-        kept_out = ("mapper", "track", "viewer", "_waiting", "_finished")
+        kept_out = ("track", "viewer", "_waiting", "_finished")
         return {k: v for k, v in self.__dict__.items() if k not in kept_out}
 
     def __setstate__(self, state: dict) -> None:
+        if "prepared" in state:  # saved before the scans went to disk (their lists in the state itself)
+            state["scans"] = ScanStore()
+            for (points, normals), image in zip(state.pop("prepared"), state.pop("images")):
+                state["scans"].append(PreparedScan(points, normals, image))
+        if "map" not in state:  # saved before the map followed corrections itself: its frames were the step's
+            fm = FollowingMap.__new__(FollowingMap)
+            fm.__setstate__({k: state.pop(k) for k in ("scans", "mapped_at", "counter", "submap", "pending",
+                                                       "readds", "pairs_removed") if k in state})
+            fm.rule = FollowRule.of(state["cfg"]) if "cfg" in state else FollowRule()
+            state["map"] = fm
+        state.pop("mapper", None)
         self.__dict__.update(state)
         self._waiting, self._finished = {}, []   # (a save settles the frames in flight first: `save_slam`)
 
@@ -216,20 +206,18 @@ class N3SlamStep:
                 pts = pts[np.linalg.norm(pts, axis=1) <= self.cfg.n3_track_max_range_m]
             r = self.fe.add_frame(frame.points, refine=self._refine(pts), scan=frame.odometry_scan)
             self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
-            self.scans.append(PreparedScan(*frame.prepared, frame.image))
-            self.mapped_at.append(None)
-            self.counter.append(0)
-            self.submap.append(0)
             record = dict(r.timings, loops=len(self.loops), ok=r.odometry_ok, tracked=r.refined)
-            n = self._map(len(self.scans) - 1, r.pose, wait=False)
+            n = self.map.add(PreparedScan(*frame.prepared, frame.image), r.pose)
             self._waiting[n] = (frame, record, r.pose)
+            self._route()
             if r.optimized:
                 self.loops.append(self.follow_loop(frame.index))
                 record["loop_map_s"] = self.loops[-1]["map_s"]
                 show_loop(self.viewer, self.fe, r)
-            if self.pending:  # n3_loop_readd_per_frame a frame; the last frame re-adds those left
-                k = len(self.pending) if frame.position >= self.last else max(1, self.cfg.n3_loop_readd_per_frame)
-                record["readd_s"] = self.readd_pending(k)
+            if self.map.pending:  # n3_loop_readd_per_frame a frame; the last frame re-adds those left
+                k = len(self.map.pending) if frame.position >= self.last else max(1, self.cfg.n3_loop_readd_per_frame)
+                record["readd_s"] = self.map.readd(k, self.fe.trajectory())
+                self._route()
         except Exception as e:  # the front end, the tracker or the mapper failed: say where
             log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
             raise JaxmapError(f"jaxmap slam (map_kind n3) failed at frame {frame.index}: {type(e).__name__}: {e}") from e
@@ -242,12 +230,13 @@ class N3SlamStep:
 
     def settle(self) -> None:
         """Wait for every map frame in flight (their records go into `records`)."""
-        self._route(self.mapper.finish())
+        self.map.settle()
+        self._route()
 
-    def _route(self, finished: list) -> None:
+    def _route(self) -> None:
         """Pair the map's records of finished frames ((record, kept) each) with the frames waiting for them
         (a re-add's record has none waiting: its frame's record was made when it was first mapped)."""
-        for info, _ in finished:
+        for info, _ in self.map.take_finished():
             entry = self._waiting.pop(int(info["frame"]), None)
             if entry is not None:
                 entry[1].update(map_s=info["total_s"], loss=info["loss"])
@@ -258,111 +247,12 @@ class N3SlamStep:
         out, self._finished = self._finished, []
         return out
 
-    def _map(self, i: int, pose: np.ndarray, wait: bool = True, **kw) -> int:
-        """Map frame i (of this run) at world pose [4, 4], finished before it returns unless not `wait`
-        (then frames in flight may remain); notes where its pairs went (submap, number, pose in the
-        submap's frame). Returns its number in the map."""
-        placed, done = self.mapper.submit_prepared(self.scans[i], pose, **kw)
-        self._route(done)
-        if wait:
-            self.settle()
-        self.submap[i] = int(placed.get("submap") or 0)
-        self.counter[i] = int(placed["frame"] if placed.get("submap_frame") is None else placed["submap_frame"])
-        S = self.mapper.submaps.infos[self.submap[i]].pose if self.cfg.n3_loop == "submaps" else np.eye(4)
-        self.mapped_at[i] = np.linalg.inv(S) @ pose
-        return int(placed["frame"])
-
-    @contextlib.contextmanager
-    def _readding(self):
-        """Frames mapped inside are re-adds after a loop: `n3_loop_readd_iters` training iterations each
-        (0: the map's own train.iters)."""
-        n = self.cfg.n3_loop_readd_iters
-        if n <= 0:
-            yield
-            return
-        self.mapper.set_iters(n)
-        try:
-            yield
-        finally:
-            self.mapper.set_iters(self.mapper.cfg.train.iters)
-
-    def readd_pending(self, n: int = 1) -> float:
-        """Re-add up to n queued frames at their current poses (those still in the submap being mapped;
-        the others stay as their submap's move put them). Returns the seconds it took."""
-        t0, traj = time.perf_counter(), self.fe.trajectory()
-        submaps = self.cfg.n3_loop == "submaps"
-        with self._readding():
-            for _ in range(n):
-                while submaps and self.pending and self.submap[self.pending[0]] != self.mapper.submaps.active:
-                    self.pending.pop(0)
-                if not self.pending:
-                    break
-                i = self.pending.pop(0)
-                self.pairs_removed += int(self.mapper.forget_frames([self.counter[i]]))
-                self._map(i, traj[i], **({"stay": True} if submaps else {}))
-                self.readds += 1
-        return time.perf_counter() - t0
-
     def follow_loop(self, frame_index: int) -> dict:
-        """Make the map follow the optimised trajectory (`n3_loop`); returns the loop's record."""
-        self.settle()
-        if self.cfg.n3_loop == "submaps":
-            return self.follow_loop_submaps(frame_index)
-        traj = self.fe.trajectory()
-        moves = np.array([pose_moved(a, b) for a, b in zip(self.mapped_at, traj)])
-        mode, mapper = self.cfg.n3_loop, self.mapper
-        moved = [i for i in range(len(traj)) if moves[i] > self.cfg.n3_loop_min_move_m]
-        t0 = time.perf_counter()
-        if mode == "moved" and self.cfg.n3_loop_readd_per_frame > 0:
-            # spread over the next frames, largest move first (the map's worst places are mended first);
-            # each re-add removes its frame's old pairs then, so the map keeps every frame meanwhile
-            queued = [i for i in sorted(moved, key=lambda i: -moves[i]) if i not in self.pending]
-            self.pending.extend(queued)
-            return self._loop_record(frame_index, mode, moves, t0, {"queued": len(queued)}, queued)
-        # rebuild: every frame again, once any moved; moved: only those, at once
-        redo = {"rebuild": list(range(len(traj))) if moved else [], "moved": moved}.get(mode, [])
-        if mode == "rebuild" and redo:
-            mapper.reset()
-        removed = mapper.forget_frames([self.counter[i] for i in redo]) if mode == "moved" else 0
-        with self._readding():
-            for i in redo:
-                self._map(i, traj[i])
-        return self._loop_record(frame_index, mode, moves, t0, {"reintegrated": len(redo), "pairs_removed": removed},
-                                 redo)
-
-    def follow_loop_submaps(self, frame_index: int) -> dict:
-        """`n3_loop: submaps`: each submap moved as a rigid body to fit its frames' optimised poses
-        (`submap_pose`); the frames of the submap being mapped left more than n3_loop_min_move_m from
-        where their submap's move put them are queued to be re-added."""
-        t0 = time.perf_counter()
-        traj, local, sub = self.fe.trajectory(), np.stack(self.mapped_at), np.asarray(self.submap)
-        infos = self.mapper.submaps.infos
-        before = np.stack([infos[k].pose @ L for k, L in zip(sub, local)])
-        poses = {int(k): submap_pose(traj[sub == k], local[sub == k]) for k in np.unique(sub)}
-        shifts = [pose_moved(infos[k].pose, T) for k, T in poses.items()]
-        self.mapper.move_submaps(poses)
-        after = np.stack([poses[int(k)] @ L for k, L in zip(sub, local)])
-        moves = np.linalg.norm(before[:, :3, 3] - traj[:, :3, 3], axis=1)
-        left = np.linalg.norm(after[:, :3, 3] - traj[:, :3, 3], axis=1)
-        beyond = left > self.cfg.n3_loop_min_move_m
-        active = self.mapper.submaps.active
-        queued = [i for i in np.nonzero(beyond & (sub == active))[0] if i not in self.pending]
-        self.pending.extend(int(i) for i in queued)
-        return self._loop_record(frame_index, "submaps", moves, t0, {
-            "submaps": len(poses), "submaps_moved": int(sum(d > self.cfg.n3_loop_min_move_m for d in shifts)),
-            "submap_max_shift_m": float(max(shifts)),
-            "left_max_m": float(left.max()), "left_median_m": float(np.median(left)),
-            "queued": len(queued), "left_beyond_elsewhere": int((beyond & (sub != active)).sum())}, queued)
-
-    def _loop_record(self, frame_index, mode, moves, t0, extra, redo) -> dict:
-        rec = {"frame": frame_index, "mode": mode, "frames": len(moves), **extra,
-               "max_move_m": float(moves.max()), "median_move_m": float(np.median(moves)),
-               "map_s": time.perf_counter() - t0}
-        (log.info if redo else log.debug)(
-            "loop at frame %d: the pose graph moved the frames by up to %.3f m (median %.3f m); n3_loop %s "
-            "re-integrated (or queued) %d of %d frames in %.1f s", frame_index, rec["max_move_m"],
-            rec["median_move_m"], mode, len(redo), len(moves), rec["map_s"])
-        return rec
+        """The map follows the optimised trajectory (`FollowingMap.correct`, by `n3_loop`); returns the
+        loop's record."""
+        record = self.map.correct(self.fe.trajectory())
+        self._route()
+        return {"frame": frame_index, **record}
 
 
 def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = True, viewer=None, track=None,
@@ -389,7 +279,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
             "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
             "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "level_s", "map_s", "loop_s")),
             "readd_s": float(sum(r.get("readd_s", 0.0) for r in step.records)),
-            "readds": step.readds, "readd_pairs_removed": step.pairs_removed,
+            "readds": step.map.readds, "readd_pairs_removed": step.map.pairs_removed,
             "checkpoint_s": float(sum(r.get("checkpoint_s", 0.0) for r in step.records))}
 
 
@@ -439,7 +329,7 @@ def save_slam(step: N3SlamStep, out_dir: str) -> None:
 
 class _StateUnpickler(pickle.Unpickler):
     """slam_state.pkl's reader: a run saved while this module was `jaxmap.slam.n3slam` still resumes."""
-    MOVED = {"jaxmap.slam.n3slam": __name__}
+    MOVED = {"jaxmap.slam.n3slam": __name__, "jaxmap.slam.scan_store": "jaxmap.n3.scan_store"}
 
     def find_class(self, module, name):
         return super().find_class(self.MOVED.get(module, module), name)
@@ -464,10 +354,6 @@ def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
                                   "start again with --overwrite")
     mapper = load_map(ckpt)
     step = saved["step"]
-    if not hasattr(step, "scans"):  # saved before the scans went to disk (their lists in the state itself)
-        step.scans = ScanStore()
-        for (points, normals), image in zip(step.__dict__.pop("prepared"), step.__dict__.pop("images")):
-            step.scans.append(PreparedScan(points, normals, image))
     if step.scans.directory is not None:  # the run directory may have moved since
         step.scans.directory = os.path.join(out_dir, SCANS_DIR)
     if mapper.frames != saved["map_frames"]:
