@@ -82,6 +82,8 @@ class N3Mapper:
     """Holds one `core.N3State` (in a `core.FramePipeline`, which runs the frame programs one frame ahead
     of their stats) and the host-side record of a run (one `N3Record` a frame, `timings`)."""
 
+    chains_submaps = False   # a map of one grid: a config with submaps.enabled is refused
+
     def __init__(self, cfg: MapConfig | None = None, state: core.N3State | None = None,
                  timings: list | None = None, *, start: MapStart | None = None, first_scan: tuple | None = None,
                  first_batch=None):
@@ -95,7 +97,7 @@ class N3Mapper:
         (about a gigabyte on a CPU) and the map are not in memory at the same time."""
         self._start = start or MapStart.of(cfg or MapConfig(), *(first_scan or ()))
         self.cfg, self.static = self._start.cfg, self._start.static
-        if self.cfg.submaps.enabled and type(self) is N3Mapper:
+        if self.cfg.submaps.enabled and not self.chains_submaps:
             from jaxmap.errors import ConfigError
 
             raise ConfigError("submaps.enabled=true: a map of submaps is a SubmapMapper (jaxmap map makes one); "
@@ -202,14 +204,20 @@ class N3Mapper:
         """`add_prepared` without waiting for the frame: returns (where it went: {"frame": its number in the
         map}, the (record, kept) of the frames finished meanwhile, as `submit`); its own record comes back
         from a later `submit` or `finish`."""
+        batch, timed = self._batch_of(prepared, pose, since)
+        done = self.submit(batch, **timed)
+        return {"frame": self.frames - 1}, done
+
+    def _batch_of(self, prepared: PreparedScan, pose, since: float | None) -> tuple:
+        """(the frame program's batch of a prepared scan at pose [4, 4] in the map's frame, `submit`'s
+        keyword arguments but the pose: its points and timings)."""
         t1 = time.perf_counter()
         if self.frames == 0:  # (again where the map started from a first scan: this frame's pose places it)
             self._begin(None, pose)
         self._bucket = scan.bucket_for(len(prepared.points), self._bucket)
         batch = self._start.batch(prepared, pose, self._origin, self._bucket)
-        done = self.submit(batch, points=len(prepared.points), prepare_s=t1 - (since or t1),
-                           main_s=time.perf_counter() - (since or t1))
-        return {"frame": self.frames - 1}, done
+        return batch, {"points": len(prepared.points), "prepare_s": t1 - (since or t1),
+                       "main_s": time.perf_counter() - (since or t1)}
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
                main_s: float = 0.0, pose=None, origin=None) -> list[tuple[N3Record, np.ndarray | None]]:

@@ -30,9 +30,11 @@ class SubmapMapper(N3Mapper):
     """An N3Mapper over a chain of submaps. directory: where the submaps are written (a run's
     `submaps/`; default a new temporary folder); index: a checkpoint's submap index (`load_map`)."""
 
+    chains_submaps = True
+
     def __init__(self, cfg=None, state=None, timings=None, *, start=None, first_scan=None, first_batch=None,
                  directory: str | None = None, index: dict | None = None):
-        self._subs, self._uploader, self._next_pose, self._again = None, None, None, False
+        self._subs, self._uploader = None, None
         super().__init__(cfg, state, timings, start=start, first_scan=first_scan, first_batch=first_batch)
         self._local = self.frames          # frames submitted to the active submap's state (its own count)
         self._local_of: dict[int, int] = {}  # frame (the whole map's count) -> its count in its submap
@@ -68,31 +70,33 @@ class SubmapMapper(N3Mapper):
         pose = np.asarray(pose, np.float64)
         if self.frames and not stay:
             self._enter(pose)
-        self._next_pose, self._again = pose, stay  # for `submit`, which `N3Mapper.submit_prepared` calls
         local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
-        placed, done = super().submit_prepared(prepared, local, since=since)
-        return {**placed, "submap": self._subs.active, "submap_frame": self._local - 1}, done
+        batch, timed = self._batch_of(prepared, local, since)
+        done = self._submit_here(batch, pose, again=stay, **timed)
+        return {"frame": self.frames - 1, "submap": self._subs.active, "submap_frame": self._local - 1}, done
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
                pose=None, origin=None) -> list:
         """`N3Mapper.submit`, first moving to the submap the frame's pose [4, 4] (T_world_sensor) falls in;
         origin: [3] the map frame the batch was uploaded in (`Frame.origin`; moved when it is another's)."""
-        if pose is None:  # from `submit_prepared`, which has entered the frame's submap
-            pose, self._next_pose = self._next_pose, None
-        elif self.frames:
-            self._enter(np.asarray(pose, np.float64))
         if pose is None:
             raise ValueError("SubmapMapper.submit needs the frame's pose (pose=T_world_sensor)")
+        if self.frames:
+            self._enter(np.asarray(pose, np.float64))
         if origin is not None and not np.array_equal(self._subs.infos[self._subs.active].pose, np.eye(4)):
             raise ValueError("a batch uploaded in the world frame cannot go into a moved submap: map it with "
                              "add_prepared (which places the pose in the submap's frame)")
         if origin is not None and not np.array_equal(np.asarray(origin, np.float64), self._origin):
             batch = shift(batch, (np.asarray(origin, np.float64) - self._origin).astype(np.float32))
-        self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames, again=self._again)
-        self._again = False
+        return self._submit_here(batch, pose, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s)
+
+    def _submit_here(self, batch, pose, again: bool = False, **timed) -> list:
+        """`N3Mapper.submit` into the active submap of a frame at world pose [4, 4] (again: a frame of it
+        added again, not a step further along its path)."""
+        self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames, again=again)
         self._local_of[self.frames] = self._local
         self._local += 1
-        return super().submit(batch, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s)
+        return super().submit(batch, **timed)
 
     def _enter(self, pose: np.ndarray) -> None:
         """Switch to the submap of the frame at `pose` when it is not the active one."""
