@@ -260,16 +260,40 @@ def test_a_drive_back_takes_up_its_old_submap_again(tmp_path):
     assert v.all() and err <= 1.5 * err1 + 0.01, (err, err1)
 
 
+def test_a_drive_longer_than_auto_m_maps_in_submaps_with_no_flag():
+    """`submaps_for_drive`: submaps.enabled false (the default) and a drive whose poses' path is longer
+    than submaps.auto_m: submaps on; a shorter one, auto_m 0, or the replay window (one grid only): the
+    config as it was."""
+    from jaxmap.runs.n3 import submaps_for_drive
+
+    poses = np.stack([np.eye(4)] * 11)
+    poses[:, 0, 3] = np.arange(11) * 10.0 + np.sin(np.arange(11))   # 100 m and the wiggles along x
+    path = np.abs(np.diff(poses[:, 0, 3])).sum()
+    cfg = load_config("configs/city.yaml")
+    assert not cfg.submaps.enabled and cfg.submaps.auto_m == 300.0   # the shipped default: on past 300 m
+    for auto_m, window, on in ((path - 1.0, "voxel", True), (path + 1.0, "voxel", False), (0.0, "voxel", False),
+                               (path - 1.0, "replay", False)):
+        c = load_config("configs/city.yaml", [f"submaps.auto_m={auto_m}", f"window.mode={window}"])
+        got = submaps_for_drive(c, poses)
+        assert got.submaps.enabled is on, (auto_m, window)
+        assert dataclasses.replace(got, submaps=c.submaps) == c          # nothing else changes
+
+
 def test_mapping_at_given_poses_makes_a_map_of_submaps(small_city, tmp_path):
-    """`map_at_poses` (the N3 map `jaxmap slam` builds offline at its optimised poses) with submaps.enabled
-    maps into submaps, placed at the given poses (it refused: N3Mapper maps one grid)."""
+    """`map_at_poses` (the N3 map `jaxmap slam` builds offline at its optimised poses) of a drive longer
+    than submaps.auto_m, with no flag, maps into submaps placed at the given poses (it refused: N3Mapper
+    maps one grid)."""
     from jaxmap.frame_loop import open_run_sequence
     from jaxmap.runs.n3 import map_at_poses
 
-    cfg = load_config("configs/city.yaml", SMALL + ["submaps.enabled=true", "submaps.length_m=2", "train.iters=10",
+    cfg = load_config("configs/city.yaml", SMALL + ["submaps.length_m=2", "train.iters=10",
                                                     f"data.path={small_city}", "data.end_frame=6",
                                                     f"output={tmp_path}"])
     seq = open_run_sequence(cfg)
+    t = np.asarray(seq.poses)[:, :3, 3]
+    cfg = dataclasses.replace(cfg, submaps=dataclasses.replace(
+        cfg.submaps, auto_m=0.5 * float(np.linalg.norm(np.diff(t, axis=0), axis=1).sum())))
+    assert not cfg.submaps.enabled
     m, loop = map_at_poses(cfg, seq, np.asarray(seq.poses), progress=False)
     assert isinstance(m, SubmapMapper) and len(m.submaps.infos) >= 2 and loop.frames_run == 6
     assert (tmp_path / "submaps").is_dir()

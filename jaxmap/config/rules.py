@@ -159,7 +159,7 @@ RULES: dict[type, dict[str, Rule]] = {
                        "normal_cell_m": above(0.0), "normal_levels": at_least(1), "veil_m": at_least(0.0),
                        "image_rows": at_least(0), "image_cols": at_least(0), "image_elev_step_deg": at_least(0.0)},
     EvidenceConfig: {"margin_m": at_least(0.0), "void_frames": at_least(1), "max_range_m": above(0.0)},
-    SubmapsConfig: {"length_m": above(0.0), "blend_m": at_least(0.0), "resident": at_least(1)},
+    SubmapsConfig: {"length_m": above(0.0), "blend_m": at_least(0.0), "resident": at_least(1), "auto_m": at_least(0.0)},
     SamplingConfig: {"label_mode": one_of("normal", "projective", "corrected"),
                      "free_label_mode": one_of("projected", "truncation"),
                      "surface_sample_range_m": above(0.0), "surface_sample_n": at_least(0), "sigma_m": at_least(0.0),

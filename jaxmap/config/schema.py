@@ -147,6 +147,9 @@ class SubmapsConfig:
     blend_m: float = 4.0             # a query reads every submap that holds it within this of the nearest
                                      # one (distance to the submaps' sensor paths), weights falling linearly to 0
     resident: int = 1                # submaps held in memory at once, the one mapped included (the rest on disk)
+    auto_m: float = 300.0            # enabled false: `jaxmap map` maps a drive whose path (its poses) is longer
+                                     # than this in submaps all the same (0: never; the suite's streets are 125-136 m,
+                                     # a 1.1 km drive in one grid peaked at 6.7 GB)
     revisit: bool = True             # a drive back takes up the earlier submap there; false: a new submap once
                                      # the sensor has driven length_m in the current one, so every pass maps into
                                      # submaps of its own, blended (jaxmap slam's: a loop correction moves them

@@ -16,10 +16,13 @@ A run directory holds:
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import os
 import time
+
+import numpy as np
 
 from jaxmap import compile_cache
 from jaxmap.config import MapConfig, save_config, shipped_config_path, to_dict
@@ -97,11 +100,30 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
 
 
 def first_start(cfg: MapConfig, seq, poses=None) -> MapStart:
-    """The `MapStart` of a map of `seq` (its first frame's scan, at poses[0] when given, else its pose)."""
+    """The `MapStart` of a map of `seq` (its first frame's scan, at poses[0] when given, else its pose),
+    in submaps when the drive is long (`submaps_for_drive`)."""
     if not len(seq):
         return MapStart.of(cfg)
+    cfg = submaps_for_drive(cfg, seq.poses if poses is None else poses)
     first = seq.frame(0)
     return MapStart.of(cfg, first.points, first.pose if poses is None else poses[0])
+
+
+def submaps_for_drive(cfg: MapConfig, poses) -> MapConfig:
+    """cfg with submaps.enabled when the drive is longer than submaps.auto_m: the path of its poses
+    [N, 4, 4] (the sensor's positions, known before mapping), so that a long drive maps in bounded memory
+    with no flag; unchanged when submaps are on already, auto_m is 0, or the window is a replay ablation
+    (one grid only). The run's config.yaml holds the result, so `--resume` maps the same way."""
+    sub = cfg.submaps
+    if sub.enabled or sub.auto_m <= 0 or cfg.window.mode != "voxel" or len(poses) < 2:
+        return cfg
+    t = np.asarray(poses, np.float64)[:, :3, 3]
+    path = float(np.linalg.norm(np.diff(t, axis=0), axis=1).sum())
+    if path <= sub.auto_m:
+        return cfg
+    log.info("the drive is %.0f m long (over submaps.auto_m = %.0f m): mapping it in submaps of %.0f m "
+             "(submaps.auto_m=0 keeps one grid)", path, sub.auto_m, sub.length_m)
+    return dataclasses.replace(cfg, submaps=dataclasses.replace(sub, enabled=True))
 
 
 def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = "mapping"):
