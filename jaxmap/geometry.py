@@ -322,6 +322,12 @@ def orthonormalize(T):
     return (SO3(T) if T.shape[-1] == 3 else SE3(T)).orthonormalize().matrix
 
 
+def path_length(positions) -> float:
+    """Length (m) of the path through positions [N, 3] in order (0 for fewer than two)."""
+    p = np.reshape(np.asarray(positions, np.float64), (-1, 3))
+    return float(np.linalg.norm(np.diff(p, axis=0), axis=1).sum())
+
+
 def compose(*poses):
     """Product of rigid transforms [4, 4] (left to right) in float64, re-orthonormalised (`orthonormalize`)."""
     out = SE3.from_matrix(np.asarray(poses[0], np.float64))

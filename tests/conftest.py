@@ -7,8 +7,9 @@ the 65,530 maps Linux allows a process (vm.max_map_count), and past it XLA abort
 compile or a cache load (`Fatal Python error: Aborted`, seen in CI). Both workers, their CLI
 subprocesses and notebook kernels compile into one folder, `tests`, of the XLA cache that
 `JAXMAP_CACHE_DIR` names (the user's per-CPU cache of `jaxmap.compile_cache` when unset; empty: no
-cache), so a program one worker compiled the other loads (a folder per worker: 939 s for the suite,
-one shared: 890 s). JAX writes an entry in place, so a worker may read one the other is still
+cache), so a program one worker compiled the other loads (the test work summed over both workers:
+1842 s with a folder each, 1690 s shared; the suite's wall time moved within the machine's spread,
+890-959 s against 939 s). JAX writes an entry in place, so a worker may read one the other is still
 writing: its load fails, JAX warns and compiles the program itself (`jax._src.compiler._cache_read`),
 which costs a compile and fails nothing. `make test` points it at an empty folder made for the run,
 as a new machine has; warm, the cache saves half the suite's time (`make test TEST_CACHE=warm`)."""

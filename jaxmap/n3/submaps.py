@@ -37,6 +37,7 @@ import os
 import numpy as np
 
 from jaxmap import hostmem
+from jaxmap.geometry import path_length
 from jaxmap.n3 import checkpoint as n3checkpoint, window
 from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_world
 from jaxmap.n3.state import N3State, N3Static, origin_world
@@ -177,8 +178,7 @@ class Submaps:
         if not self.cfg.submaps.revisit:
             # each pass its own: the length is the path driven in the submap (a drive around a block
             # never leaves a radius of length_m; its return must be another submap to be moved apart)
-            path = np.reshape(np.asarray([*act.path, here], np.float64), (-1, 3))
-            return None if np.linalg.norm(np.diff(path, axis=0), axis=1).sum() <= length else NEW
+            return None if path_length([*act.path, here]) <= length else NEW
         if np.linalg.norm(here - act.anchor) <= length:
             return None
         d = np.array([np.linalg.norm(to_world(i.pose, i.anchor[None])[0] - position_w) for i in self.infos])

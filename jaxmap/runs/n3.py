@@ -30,6 +30,7 @@ from jaxmap.errors import CheckpointError, NoCheckpointError
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import (Checkpoints, Prefetcher, Progress, SubmitSteps, open_run_sequence, open_viewer,
                                prepared_frame, run_frames)
+from jaxmap.geometry import path_length
 from jaxmap.hostmem import peak_rss_mb
 from jaxmap.metrics import dynamic
 from jaxmap.n3 import checkpoint
@@ -117,8 +118,7 @@ def submaps_for_drive(cfg: MapConfig, poses) -> MapConfig:
     sub = cfg.submaps
     if sub.enabled or sub.auto_m <= 0 or cfg.window.mode != "voxel" or len(poses) < 2:
         return cfg
-    t = np.asarray(poses, np.float64)[:, :3, 3]
-    path = float(np.linalg.norm(np.diff(t, axis=0), axis=1).sum())
+    path = path_length(np.asarray(poses, np.float64)[:, :3, 3])
     if path <= sub.auto_m:
         return cfg
     log.info("the drive is %.0f m long (over submaps.auto_m = %.0f m): mapping it in submaps of %.0f m "
