@@ -69,6 +69,7 @@ def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", 
     path = os.path.join(out_dir, name)
     m.export(path)
     out = {"mesh": path, "faces": int(len(m.faces)), "mesh_s": time.perf_counter() - t0}
+    del m  # (the evaluation reads the file: the mesh is not held beside the ground truth)
     if not (evaluate and has_ground_truth(cfg.data.path)):
         return out
     if out["faces"] == 0:

@@ -420,3 +420,44 @@ def test_gt_paths(tmp_path):
     write_points_ply(tmp_path / "gt_points.ply", np.zeros((3, 3)))
     seq = open_sequence(tmp_path)
     assert seq.gt_points_path == os.path.join(str(tmp_path), "gt_points.ply") and seq.gt_mesh_path is None
+
+
+def test_ply_points_read_in_pieces_are_the_whole_file_in_order(tmp_path):
+    """`read_points_ply_chunks`: a binary file (memory-mapped, also big-endian and with an element before
+    the vertices) and an ascii one (parsed whole) give, piece after piece, exactly what `read_points_ply`
+    gives, with normals and classes; pieces are at most `chunk` rows."""
+    import trimesh
+
+    from jaxmap.io import read_points_ply_chunks
+
+    rng = np.random.default_rng(3)
+    pts = rng.normal(size=(1003, 3)).astype(np.float32)
+    nrm = rng.normal(size=(1003, 3)).astype(np.float32)
+    cls = rng.integers(0, 8, 1003).astype(np.uint8)
+    write_points_ply(tmp_path / "p.ply", pts, nrm, cls)
+    body = (tmp_path / "p.ply").read_bytes()
+    head, data = body.split(b"end_header\n", 1)
+    # big-endian, with a fixed-row element before the vertices
+    rows = np.frombuffer(data, np.dtype([("p", "<f4", 6), ("c", "u1")]))
+    big = np.zeros(len(rows), np.dtype([("p", ">f4", 6), ("c", "u1")]))
+    big["p"], big["c"] = rows["p"], rows["c"]
+    (tmp_path / "b.ply").write_bytes(
+        head.replace(b"binary_little_endian", b"binary_big_endian").replace(
+            b"element vertex", b"element extra 2\nproperty double t\nelement vertex") + b"end_header\n"
+        + np.array([1.0, 2.0], ">f8").tobytes() + big.tobytes())
+    cloud = trimesh.PointCloud(pts)
+    (tmp_path / "a.ply").write_bytes(trimesh.exchange.ply.export_ply(cloud, encoding="ascii"))
+    for name, with_extras in (("p.ply", True), ("b.ply", True), ("a.ply", False)):
+        pieces = list(read_points_ply_chunks(tmp_path / name, chunk=100))
+        assert [len(p) for p, _, _ in pieces] == [100] * 10 + [3], name
+        whole_p, whole_n, whole_c = read_points_ply(tmp_path / name, return_normals=True, return_classes=True)
+        np.testing.assert_array_equal(np.concatenate([p for p, _, _ in pieces]), whole_p)
+        np.testing.assert_allclose(whole_p, pts, atol=1e-6)
+        if with_extras:
+            np.testing.assert_array_equal(np.concatenate([n for _, n, _ in pieces]), nrm)
+            np.testing.assert_array_equal(np.concatenate([c for _, _, c in pieces]), cls)
+        else:
+            assert all(n is None and c is None for _, n, c in pieces)
+    (tmp_path / "t.ply").write_bytes(body[:-50])
+    with pytest.raises(DataError, match="truncated"):
+        next(read_points_ply_chunks(tmp_path / "t.ply"))

@@ -315,3 +315,42 @@ def test_far_share_and_precision_without_the_drop():
     assert "ghost surface" not in out
     g = format_metrics(dict(m, ghost_area_m2={"car": 3.25, "pedestrian": 0.5, "total": 3.75}))
     assert "ghost surface (m^2): car 3.25, pedestrian 0.50, total 3.75" in g
+
+
+def test_ground_truth_read_in_pieces_keeps_what_culling_it_whole_keeps(tmp_path):
+    """`read_gt_culled` (a run's evaluation: the GT file read and culled piece by piece) keeps exactly the
+    points, normals and classes that `cull_gt` of the whole file keeps, and the GT it keeps for the ghost
+    test gives the ghost area that all of the GT gives: a mesh wall inside a car's grown box, 12 cm from a
+    GT wall 20 cm outside the box (static surface), counts as ghost if those GT points are left out."""
+    from jaxmap.io import write_points_ply
+    from jaxmap.metrics import cull_gt, read_gt
+    from jaxmap.metrics.protocol import GtCuller
+    from jaxmap.metrics.sequence import read_gt_culled
+    from jaxmap.moving import Boxes, ghost_area
+
+    rng = np.random.default_rng(0)
+    g = np.arange(0.0, 1.5001, 0.05)
+    wall = np.stack(np.meshgrid([3.2], np.arange(1.0, 3.0001, 0.05), g, indexing="ij"), -1).reshape(-1, 3)
+    gt = np.concatenate([rng.uniform(-10, 10, (5000, 3)), wall]).astype(np.float32)
+    nrm = rng.normal(size=gt.shape).astype(np.float32)
+    cls = rng.integers(0, 8, len(gt)).astype(np.uint8)
+    write_points_ply(tmp_path / "gt_points.ply", gt, nrm, cls)
+    observed, sensors = rng.uniform(-6, 6, (400, 3)), np.array([[0.0, 0.0, 0.0], [3.0, 0.0, 0.0]])
+    cull = dict(observed_points=observed, cull_distance_m=1.0, sensor_positions=sensors, eval_radius_m=8.0)
+    car = Boxes(params=np.array([[2.0, 2.0, 0.0, 0.0, 2.0, 1.0, 1.5]]), kind=np.zeros(1, np.int64),
+                frame=np.zeros(1, np.int64), obj=np.zeros(1, np.int64), kinds=("car",))
+    got = read_gt_culled(tmp_path, GtCuller(**cull), car, chunk=333)
+    whole = read_gt(tmp_path)
+    kept, idx = cull_gt(whole["points"], return_index=True, **cull)
+    assert got["count"] == len(gt) and 100 < len(kept) < len(gt) // 2, len(kept)
+    np.testing.assert_array_equal(got["points"], kept)
+    np.testing.assert_array_equal(got["normals"], whole["normals"][idx])
+    np.testing.assert_array_equal(got["classes"], whole["classes"][idx])
+    # the mesh: a ghost roof inside the box (1.6 x 0.8 m) and a wall 12 cm in front of the GT wall
+    v = np.array([[1.2, 1.6, 0.9], [2.8, 1.6, 0.9], [2.8, 2.4, 0.9], [1.2, 2.4, 0.9],
+                  [3.08, 1.6, 0.2], [3.08, 2.4, 0.2], [3.08, 2.4, 1.2], [3.08, 1.6, 1.2]])
+    f = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    all_gt = ghost_area(v, f, whole["points"], car)["total"]
+    assert 1.1 < all_gt < 1.3, all_gt  # the roof (1.28 m2, less where a random GT point is within 15 cm)
+    assert ghost_area(v, f, got["near_moving"], car)["total"] == all_gt
+    assert ghost_area(v, f, got["near_moving"][got["near_moving"][:, 0] < 3.1], car)["total"] > all_gt + 0.5

@@ -30,7 +30,7 @@ from jaxmap.io.depth import (DepthSequence, backproject_depth, pixel_rays, read_
 from jaxmap.io.kitti import (SensorFrame, KittiSequence, Sequence, camera_poses_from_lidar, lidar_poses_from_camera,
                              read_calib, read_poses, select_frames, write_calib, write_poses)
 from jaxmap.io.las import LasSequence, is_las_file, list_las, read_las
-from jaxmap.io.pointcloud import (read_mesh_ply, read_pcd, read_points_ply, read_scan, write_mesh_ply,
+from jaxmap.io.pointcloud import (read_mesh_ply, read_pcd, read_points_ply, read_points_ply_chunks, read_scan, write_mesh_ply,
                                   write_points_ply, write_scan_bin)
 from jaxmap.io.replica import ReplicaSequence, is_replica
 from jaxmap.io.rosbag import RosbagSequence, describe, is_rosbag
@@ -117,7 +117,7 @@ __all__ = [
     "SensorFrame", "Sequence", "KittiSequence", "DepthSequence", "RosbagSequence", "TumSequence", "ReplicaSequence",
     "LasSequence", "KINDS", "open_sequence", "detect_kind", "describe", "select_frames", "read_las",
     "read_tum_trajectory",
-    "read_scan", "write_scan_bin", "read_pcd", "read_points_ply", "write_points_ply", "read_mesh_ply",
+    "read_scan", "write_scan_bin", "read_pcd", "read_points_ply", "read_points_ply_chunks", "write_points_ply", "read_mesh_ply",
     "write_mesh_ply", "read_poses", "write_poses", "read_calib", "write_calib", "lidar_poses_from_camera",
     "camera_poses_from_lidar", "read_intrinsics", "write_intrinsics", "read_depth_png", "write_depth_png",
     "backproject_depth", "pixel_rays",

@@ -9,13 +9,14 @@ import os
 
 import numpy as np
 
-from jaxmap import moving
+from jaxmap import hostmem, moving
 from jaxmap.errors import DataError
 from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
 from jaxmap.geometry import transform_points
 from jaxmap.io import open_sequence
 from jaxmap.metrics.protocol import (
-    culled_or_fail,
+    GtCuller,
+    no_gt_left,
     load_mesh,
     signed_error_by_class,
     mesh_arrays,
@@ -100,11 +101,61 @@ def read_gt(data_dir) -> dict:
     """The ground truth of a sequence directory: {"points" [G,3] float64, "normals" [G,3] or None,
     "classes" [G] uint8 or None, "class_names" list or None, "mesh" path of gt_mesh.ply or None}.
 
-    Class names come from meta.json ("gt": {"classes": [...]}), as `jaxmap synth` writes them."""
-    import json
-
+    Class names come from meta.json ("gt": {"classes": [...]}), as `jaxmap synth` writes them. (A run's
+    evaluation reads only the points the protocol keeps: `read_gt_culled`.)"""
     from jaxmap.io import read_points_ply
 
+    gt_path = _gt_path(data_dir)
+    pts, nrm, cls = read_points_ply(gt_path, return_normals=True, return_classes=True)
+    pts = np.asarray(pts, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
+        raise DataError(f"{gt_path}: expected a non-empty point cloud, got shape {pts.shape}")
+    return {"points": pts[:, :3], "normals": nrm, "classes": cls, **_gt_extras(data_dir, cls is not None)}
+
+
+GT_CHUNK = 2_000_000  # GT points read and culled at a time (`read_gt_culled`)
+
+
+def read_gt_culled(data_dir, culler, ghost_boxes=None, chunk: int = GT_CHUNK) -> dict:
+    """The GT points that step 1 of the protocol keeps (`culler`: a `protocol.GtCuller`), read from
+    gt_points.ply in pieces of `chunk` points, so that memory holds those, not the file (a long drive's
+    GT is ~75 M points, 5 GB once read whole). Returns read_gt's fields for the kept points ("points"
+    [G',3] float64, "normals", "classes"; "class_names", "mesh"), the file's point count ("count"), and "near_moving": with `ghost_boxes` (jaxmap.moving.Boxes) every GT
+    point inside a box grown by the ghost test's reach (`moving.ghost_area` reads no GT point farther
+    away), else None."""
+    from jaxmap.io import read_points_ply_chunks
+
+    gt_path = _gt_path(data_dir)
+    reach = moving.GHOST_INFLATE_M + moving.GHOST_STATIC_M + 1e-3
+    kept: dict[str, list] = {"points": [], "normals": [], "classes": [], "near": []}
+    count, has_n, has_c = 0, False, False
+    for pts, nrm, cls in read_points_ply_chunks(gt_path, chunk):
+        p = pts.astype(np.float64)
+        keep = np.flatnonzero(culler.keep(p))
+        kept["points"].append(p[keep])
+        has_n, has_c = nrm is not None, cls is not None
+        if has_n:
+            kept["normals"].append(nrm[keep])
+        if has_c:
+            kept["classes"].append(cls[keep])
+        if ghost_boxes is not None:
+            kept["near"].append(p[moving.inside_boxes(p, ghost_boxes, reach)])
+        count += len(p)
+    if count == 0:
+        raise DataError(f"{gt_path}: expected a non-empty point cloud, got no points")
+
+    def joined(name, width):
+        return np.concatenate(kept[name]) if kept[name] else np.zeros((0, width))
+
+    return {"points": joined("points", 3),
+            "normals": joined("normals", 3).astype(np.float32) if has_n else None,
+            "classes": np.concatenate(kept["classes"]) if has_c else None,
+            "near_moving": joined("near", 3) if ghost_boxes is not None else None, "count": count,
+            **_gt_extras(data_dir, has_c)}
+
+
+def _gt_path(data_dir) -> str:
+    """data_dir/gt_points.ply, or a DataError that says what is missing."""
     data_dir = os.fspath(data_dir)
     gt_path = os.path.join(data_dir, "gt_points.ply")
     if not os.path.isdir(data_dir):
@@ -112,18 +163,21 @@ def read_gt(data_dir) -> dict:
     if not os.path.isfile(gt_path):
         raise DataError(f"{data_dir}: no gt_points.ply (ground-truth surface points); "
                         "`jaxmap synth` writes one, or convert the dataset's GT cloud to PLY")
-    pts, nrm, cls = read_points_ply(gt_path, return_normals=True, return_classes=True)
-    pts = np.asarray(pts, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] < 3 or len(pts) == 0:
-        raise DataError(f"{gt_path}: expected a non-empty point cloud, got shape {pts.shape}")
+    return gt_path
+
+
+def _gt_extras(data_dir, has_classes: bool) -> dict:
+    """{"class_names" (meta.json's "gt": {"classes"}, when the points have classes), "mesh" (gt_mesh.ply)}."""
+    import json
+
+    data_dir = os.fspath(data_dir)
     names = None
     meta_path = os.path.join(data_dir, "meta.json")
-    if cls is not None and os.path.isfile(meta_path):
+    if has_classes and os.path.isfile(meta_path):
         with open(meta_path) as f:
             names = (json.load(f).get("gt") or {}).get("classes")
     mesh = os.path.join(data_dir, "gt_mesh.ply")
-    return {"points": pts[:, :3], "normals": nrm, "classes": cls, "class_names": names,
-            "mesh": mesh if os.path.isfile(mesh) else None}
+    return {"class_names": names, "mesh": mesh if os.path.isfile(mesh) else None}
 
 
 def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_distance_m: float = 0.3,
@@ -153,27 +207,35 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
     if protocol not in PROTOCOLS:
         raise DataError(f"unknown protocol {protocol!r}; choose from {', '.join(PROTOCOLS)}")
     data_dir = os.fspath(data_dir)
-    mesh, gtd = _mesh_and_gt(os.fspath(mesh_path), data_dir)
+    if not os.path.isfile(mesh_path):
+        raise DataError(f"mesh file not found: {mesh_path}")
+    _gt_path(data_dir)  # (the missing file is named before anything is read)
+    v, f = mesh_arrays(_mesh_of(os.fspath(mesh_path)))  # (the arrays only: trimesh's object holds ~2x more)
     observed, sensors = observed_points_of(data_dir, max_frames=max_frames_for_culling, begin_frame=begin_frame,
                                            end_frame=end_frame, every_frame=every_frame,
                                            min_range_m=min_range_m, max_range_m=max_range_m)
-    log.info("eval: %d GT points, %d observed points (5 cm), %d sensor positions",
-             len(gtd["points"]), len(observed), len(sensors))
-    gt, idx = culled_or_fail(gtd["points"], cull_distance_m, eval_radius_m, observed_points=observed,
-                              sensor_positions=sensors)
+    ghost_boxes = _ghost_boxes(data_dir, begin_frame, end_frame, every_frame) if ghost else None
+    culler = GtCuller(observed_points=observed, cull_distance_m=cull_distance_m, sensor_positions=sensors,
+                      eval_radius_m=eval_radius_m)
+    gtd = read_gt_culled(data_dir, culler, ghost_boxes)
+    log.info("eval: %d GT points (%d kept), %d observed points (5 cm), %d sensor positions",
+             gtd["count"], len(gtd["points"]), len(observed), len(sensors))
+    del observed, culler
+    hostmem.trim()  # (the pieces' heap back to the system before the protocol's own peak)
+    gt = gtd["points"]
+    if len(gt) == 0:
+        raise DataError(no_gt_left(cull_distance_m, eval_radius_m))
     kw = dict(threshold_m=threshold_m, n_samples=n_samples, seed=seed, down_sample_m=DOWN_SAMPLE_M,
               acc_truncation_m=ACC_TRUNCATION_M, comp_truncation_m=COMP_TRUNCATION_M)
-    v, f = mesh_arrays(mesh)
     m, pred = evaluate_culled(v, f, gt, **kw)
     if protocol == "surface":
         m.update(surface_fields(v, f, gt, COMP_TRUNCATION_M, DOWN_SAMPLE_M))
-    ghost_boxes = _ghost_boxes(data_dir, begin_frame, end_frame, every_frame) if ghost else None
     if ghost_boxes is not None:
-        m["ghost_area_m2"] = moving.ghost_area(v, f, gtd["points"], ghost_boxes)
+        m["ghost_area_m2"] = moving.ghost_area(v, f, gtd["near_moving"], ghost_boxes)
     has_classes = gtd["classes"] is not None and gtd["normals"] is not None and gtd["class_names"]
     if has_classes:
-        m["signed_error_cm"] = signed_error_by_class(pred, gt, gtd["normals"][idx], gtd["classes"][idx],
-                                                     gtd["class_names"])
+        m["signed_error_cm"] = signed_error_by_class(pred, gt, gtd["normals"], gtd["classes"], gtd["class_names"])
+    del pred, v, f
     if floor:
         if gtd["mesh"] is None:
             log.warning("%s has no gt_mesh.ply: no protocol floor", data_dir)
@@ -182,35 +244,35 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
                              max_frames_for_culling=max_frames_for_culling, begin_frame=begin_frame,
                              end_frame=end_frame, every_frame=every_frame, min_range_m=min_range_m,
                              max_range_m=max_range_m)
-            m["floor"] = _floor_metrics(data_dir, gtd, gt, idx, kw, ghost_boxes, has_classes, selection)
+            m["floor"] = _floor_metrics(data_dir, gtd, kw, ghost_boxes, has_classes, selection)
     return m
 
 
-def _mesh_and_gt(mesh_path: str, data_dir: str):
-    """(the mesh file as a trimesh.Trimesh with faces, `read_gt(data_dir)`)."""
+def _mesh_of(mesh_path: str):
+    """The mesh file as a trimesh.Trimesh with faces, or a DataError."""
     if not os.path.isfile(mesh_path):
         raise DataError(f"mesh file not found: {mesh_path}")
-    gtd = read_gt(data_dir)
     mesh = load_mesh(mesh_path)
     if len(mesh.faces) == 0:
         raise DataError(f"{mesh_path}: the mesh has zero faces (and {len(mesh.vertices)} vertices); "
                         "there is no surface to evaluate")
-    return mesh, gtd
+    return mesh
 
 
-def _floor_metrics(data_dir: str, gtd: dict, gt, idx, kw: dict, ghost_boxes, has_classes, selection: dict) -> dict:
+def _floor_metrics(data_dir: str, gtd: dict, kw: dict, ghost_boxes, has_classes, selection: dict) -> dict:
     """The protocol with the subdivided GT mesh as the prediction (cached beside the data): the same
-    fields as the run's metrics. gt: the culled GT points, idx: their indices in gtd["points"]."""
+    fields as the run's metrics. gtd: `read_gt_culled`'s."""
     key = _floor_key(data_dir, gtd, kw, **selection, ghost=ghost_boxes is not None)
     fm = _floor_cache(data_dir).get(key)
     if fm is None:
+        gt = gtd["points"]
         fv, ff = subdivide_mesh(*mesh_arrays(gtd["mesh"]))
         fm, fpred = evaluate_culled(fv, ff, gt, **kw)
         if ghost_boxes is not None:
-            fm["ghost_area_m2"] = moving.ghost_area(fv, ff, gtd["points"], ghost_boxes)
+            fm["ghost_area_m2"] = moving.ghost_area(fv, ff, gtd["near_moving"], ghost_boxes)
         if has_classes:
-            fm["signed_error_cm"] = signed_error_by_class(fpred, gt, gtd["normals"][idx],
-                                                          gtd["classes"][idx], gtd["class_names"])
+            fm["signed_error_cm"] = signed_error_by_class(fpred, gt, gtd["normals"], gtd["classes"],
+                                                          gtd["class_names"])
         _floor_cache_put(data_dir, key, fm)
     return fm
 
