@@ -343,7 +343,8 @@ class Submaps:
         """Marching-cubes mesh of the blended zero level set (trimesh.Trimesh, world frame) on the world
         lattice of `res` (which must divide the leaf voxel size). Each lattice cell is meshed with the
         cells of the submap whose sensor path is nearest to it, one submap after another, each while it and
-        its neighbours are in memory (at most resident + 4 submaps at once); the pieces are welded."""
+        its neighbours are in memory (at most resident + 4 submaps at once, `resident` again after); the
+        pieces are welded."""
         from jaxmap.mesh import extract_mesh_groups
 
         static = self.static
@@ -367,7 +368,11 @@ class Submaps:
         def sdf_fn_of(_g):
             return lambda p: self.query_world(p, limit=limit)
 
-        return extract_mesh_groups(sdf_fn_of, cell_groups, static.leaf, res, min_component_faces=min_component_faces)
+        try:
+            return extract_mesh_groups(sdf_fn_of, cell_groups, static.leaf, res,
+                                       min_component_faces=min_component_faces)
+        finally:  # back to `submaps.resident` once meshed (what the end of a run holds while it is evaluated)
+            self._fit(self.limit - int(self.active is not None and self.live is not None))
 
     def _cells_world(self, k: int, limit: int) -> np.ndarray:
         """[M, 3] int64 world-lattice leaf cells that submap k meshes (its non-void leaves, with their
