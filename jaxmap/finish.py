@@ -28,18 +28,25 @@ def finish_run(mapper: Mapper, cfg, out_dir: str, loop: FramesRun | None = None,
     run's `jaxmap.metrics.dynamic.PointScores.result()` (sequences with moving objects), written to
     metrics.json and the summary as "dynamic_points". wait_saves: waits for the final checkpoint, written
     in the background while the map is meshed (`Checkpoints.final`); what is left of it once the mesh is
-    done counts in the run's wall_s and final_save_s."""
-    out = (mesh_and_metrics(mapper, cfg, out_dir, evaluate=evaluate) if mesh
-           else {"mesh": None, "faces": 0, "mesh_s": 0.0})
-    if point_scores is not None:
-        out["dynamic_points"] = point_scores
-        if "metrics" in out:
-            out["metrics"]["dynamic_points"] = point_scores
+    done counts in the run's wall_s and final_save_s.
+
+    The run ends here: once its mesh and its final checkpoint are written, the map's arrays are released
+    (`mapper.release()`; its records stay), so that the evaluation does not run beside them."""
+    out = mesh_file(mapper, out_dir) if mesh else {"mesh": None, "faces": 0, "mesh_s": 0.0}
     t0 = time.perf_counter()
     if wait_saves is not None:
         wait_saves()
     waited = time.perf_counter() - t0
     summ = dict(mapper.timing_summary())
+    if viewer is not None:
+        close_viewer(viewer, out["mesh"], out_dir)
+    mapper.release()
+    if mesh and evaluate:
+        out.update(metrics_of(out, cfg))
+    if point_scores is not None:
+        out["dynamic_points"] = point_scores
+        if "metrics" in out:
+            out["metrics"]["dynamic_points"] = point_scores
     ran = loop is not None and loop.frames_run
     if ran:
         wall = loop.wall_s + waited
@@ -53,10 +60,7 @@ def finish_run(mapper: Mapper, cfg, out_dir: str, loop: FramesRun | None = None,
     if "metrics" in out:
         with open(os.path.join(out_dir, "metrics.json"), "w") as f:
             json.dump(out["metrics"], f)
-    summary = {"run": out_dir, **out, **summ, "peak_rss_mb": peak_rss_mb()}
-    if viewer is not None:
-        close_viewer(viewer, out["mesh"], out_dir)
-    return summary
+    return {"run": out_dir, **out, **summ, "peak_rss_mb": peak_rss_mb()}
 
 
 def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", evaluate: bool = True,
@@ -64,19 +68,29 @@ def mesh_and_metrics(mapper: Mapper, cfg, out_dir: str, name: str = "mesh.ply", 
     """Write the map's mesh to `out_dir/name`; its metrics against the ground truth of the run's data
     when `evaluate` and the data has gt_points.ply (with the protocol's floor unless floor=False).
     Returns {"mesh": path, "faces", "mesh_s", "metrics"?}."""
+    out = mesh_file(mapper, out_dir, name)
+    if evaluate:
+        out.update(metrics_of(out, cfg, floor))
+    return out
+
+
+def mesh_file(mapper: Mapper, out_dir: str, name: str = "mesh.ply") -> dict:
+    """The map's mesh written to `out_dir/name`: {"mesh": path, "faces", "mesh_s"}."""
     t0 = time.perf_counter()
     m = mapper.mesh()
     path = os.path.join(out_dir, name)
     m.export(path)
-    out = {"mesh": path, "faces": int(len(m.faces)), "mesh_s": time.perf_counter() - t0}
-    del m  # (the evaluation reads the file: the mesh is not held beside the ground truth)
-    if not (evaluate and has_ground_truth(cfg.data.path)):
-        return out
-    if out["faces"] == 0:
-        log.warning("the mesh %s is empty (too few frames or iterations?): no metrics", path)
-        return out
-    out["metrics"] = evaluate_run_mesh(path, cfg, floor=floor)
-    return out
+    return {"mesh": path, "faces": int(len(m.faces)), "mesh_s": time.perf_counter() - t0}
+
+
+def metrics_of(mesh_out: dict, cfg, floor: bool = True) -> dict:
+    """{"metrics": ...} of the mesh `mesh_file` wrote, when the run's data has ground truth, else {}."""
+    if not has_ground_truth(cfg.data.path):
+        return {}
+    if mesh_out["faces"] == 0:
+        log.warning("the mesh %s is empty (too few frames or iterations?): no metrics", mesh_out["mesh"])
+        return {}
+    return {"metrics": evaluate_run_mesh(mesh_out["mesh"], cfg, floor=floor)}
 
 
 def has_ground_truth(data_path: str) -> bool:

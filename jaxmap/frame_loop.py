@@ -60,6 +60,9 @@ class Mapper(Protocol):
     def live_mesh(self) -> dict:
         """`attach_viewer` arguments (mesh_fn, snapshot_fn) that mesh the map in a background thread."""
 
+    def release(self) -> None:
+        """Drop the map's arrays: the run is over (`jaxmap.finish.finish_run`); its records stay."""
+
 
 @dataclasses.dataclass(frozen=True)
 class Frame:

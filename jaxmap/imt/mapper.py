@@ -174,6 +174,10 @@ class ImtMapper:
         not decoded (as for the mesh)."""
         return query(self.prior, self.map, points_w, min_weight=self.cfg.mesh.min_weight)
 
+    def release(self) -> None:
+        """The run is over: drop the latent map and the keyframes (`timings` and `remaps` stay)."""
+        self.state = self.store = None
+
     def timing_summary(self, skip_first: int = 1) -> dict:
         """Per-frame medians after the first `skip_first` (compiling) frames, the count of frames with
         nothing left to encode, and the map's and keyframe store's sizes (timing.json)."""

@@ -244,6 +244,14 @@ class N3Mapper:
         self._settle()
         return self._take_unreported()
 
+    def release(self) -> None:
+        """The run is over (meshed, its final checkpoint written): drop the map's arrays, so that what comes
+        after it (the evaluation) does not run beside them. Its records (`timings`) stay; nothing may read
+        the map after this."""
+        self._settle()
+        self.state = None
+        hostmem.trim()
+
     def _take_unreported(self) -> list[tuple[N3Record, np.ndarray | None]]:
         out, self._unreported = self._unreported, []
         return out

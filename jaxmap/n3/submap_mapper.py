@@ -205,6 +205,10 @@ class SubmapMapper(N3Mapper):
         `submap_frame`); the other submaps keep no pair store to remove pairs from."""
         return self._forget(frames, self._local)
 
+    def release(self) -> None:
+        super().release()
+        self._subs.release()
+
     def reset(self) -> None:
         raise NotImplementedError("a map of submaps is not reset (jaxmap slam n3_loop rebuild maps one grid)")
 

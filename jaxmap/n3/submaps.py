@@ -240,6 +240,11 @@ class Submaps:
         self.states[k] = state
         return state
 
+    def release(self) -> None:
+        """Drop every resident state and the live one's reader (the map is over: `SubmapMapper.release`)."""
+        self.live = None
+        self._fit(0)
+
     def _fit(self, n: int) -> None:
         """Drop the least recently used resident states beyond n (each is on disk: `park` wrote it)."""
         dropped = False
