@@ -143,3 +143,24 @@ def test_ctrl_c_leaves_a_checkpoint_and_resume_finishes_the_same_map(small_city,
     b = N3Mapper.load(str(tmp_path / "cut" / "checkpoint"))
     assert int(b.state.frame) == 4
     np.testing.assert_array_equal(np.asarray(a.state.feature_table), np.asarray(b.state.feature_table))
+
+
+def test_a_finished_run_is_evaluated_without_its_map(small_city, tmp_path, monkeypatch):
+    """`finish_run` writes the mesh, then releases the map's arrays (what the end of a run held beside the
+    ground truth it reads) and only then evaluates the mesh file: the evaluation finds the map gone, and the
+    records stay for timing.json."""
+    from jaxmap import finish
+    from jaxmap.io import open_sequence
+
+    m = _mapper([f"data.path={small_city}", "eval.n_samples=50000"])
+    seq = open_sequence(str(small_city))
+    for i in range(4):
+        m.add_frame(seq[i].points, seq[i].pose)
+    seen = []
+    real = finish.evaluate_run_mesh
+    monkeypatch.setattr(finish, "evaluate_run_mesh",
+                        lambda path, cfg, **kw: seen.append(m.state is None) or real(path, cfg, **kw))
+    out = finish.finish_run(m, m.cfg, str(tmp_path))
+    assert seen == [True] and m.state is None
+    assert out["faces"] > 0 and out["metrics"] == json.load(open(tmp_path / "metrics.json"))
+    assert len(json.load(open(tmp_path / "timing.json"))["frames"]) == 4
