@@ -283,7 +283,7 @@ class Submaps:
         if tree is None:  # (the path grew or the submap moved: its older tree goes)
             self._trees = {kk: t for kk, t in self._trees.items() if kk[0] != k}
             tree = self._trees[key] = cKDTree(info.world_path())
-        return tree.query(points_w)[0]
+        return tree.query(points_w, workers=-1)[0]
 
     def query_world(self, points_w, grad: bool = False, limit: int | None = None):
         """The blended SDF at world points [N, 3] -> (sdf [N] float32, valid [N] bool), or with `grad`
@@ -335,7 +335,7 @@ class Submaps:
 
     def _read_submap(self, k, pts_w, idx, j, sdf, valid, g, limit) -> None:
         info = self.infos[k]
-        state = self.state(k, limit)
+        state = query_view(self.state(k, limit))  # (the live state read as the others are: one program each size)
         local = to_local(info.pose, pts_w)
         s, v = query_world(self.static, state, local, small_tail=True)
         sdf[idx, j], valid[idx, j] = s, v
