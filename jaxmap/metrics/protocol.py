@@ -87,11 +87,13 @@ class GtCuller:
 
         self.cull_distance_m, self.eval_radius_m = cull_distance_m, eval_radius_m
         self._sensors = self._observed = None  # (None: that test is off)
+        self._no_sensor = False                # the radius test is on and there is no sensor: nothing is kept
         if eval_radius_m is not None and eval_radius_m > 0:
             if sensor_positions is None:
                 raise DataError("eval_radius_m > 0 needs sensor_positions (the pose translations)")
             sp = _as_points(sensor_positions, "sensor_positions")
-            self._sensors = cKDTree(sp) if len(sp) else "nothing"  # no sensor: nothing is within reach
+            self._no_sensor = len(sp) == 0
+            self._sensors = cKDTree(sp) if len(sp) else None
         if observed_points is not None:
             obs = _as_points(observed_points, "observed_points")
             if len(obs) == 0:
@@ -101,12 +103,9 @@ class GtCuller:
     def keep(self, gt_points) -> np.ndarray:
         """[N] bool: which of the GT points [N,3] (world frame) the protocol keeps."""
         gt = _as_points(gt_points, "gt_points")
-        idx = np.arange(len(gt))
+        idx = np.arange(len(gt)) if not self._no_sensor else np.zeros(0, np.int64)
         for tree, reach in ((self._sensors, self.eval_radius_m), (self._observed, self.cull_distance_m)):
             if tree is None or len(idx) == 0:
-                continue
-            if isinstance(tree, str):
-                idx = idx[:0]
                 continue
             d = tree.query(gt[idx], k=1, distance_upper_bound=reach * (1 + 1e-9) + 1e-12, workers=-1)[0]
             idx = idx[d <= reach]

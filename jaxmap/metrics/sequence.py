@@ -120,9 +120,9 @@ def read_gt_culled(data_dir, culler, ghost_boxes=None, chunk: int = GT_CHUNK) ->
     """The GT points that step 1 of the protocol keeps (`culler`: a `protocol.GtCuller`), read from
     gt_points.ply in pieces of `chunk` points, so that memory holds those, not the file (a long drive's
     GT is ~75 M points, 5 GB once read whole). Returns read_gt's fields for the kept points ("points"
-    [G',3] float64, "normals", "classes"; "class_names", "mesh"), the file's point count ("count"), and "near_moving": with `ghost_boxes` (jaxmap.moving.Boxes) every GT
-    point inside a box grown by the ghost test's reach (`moving.ghost_area` reads no GT point farther
-    away), else None."""
+    [G',3] float64, "normals", "classes"; "class_names", "mesh"), the file's point count ("count"), and
+    "near_moving": with `ghost_boxes` (jaxmap.moving.Boxes) every GT point inside a box grown by the ghost
+    test's reach (`moving.ghost_area` reads no GT point farther away), else None."""
     from jaxmap.io import read_points_ply_chunks
 
     gt_path = _gt_path(data_dir)
@@ -249,9 +249,7 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
 
 
 def _mesh_of(mesh_path: str):
-    """The mesh file as a trimesh.Trimesh with faces, or a DataError."""
-    if not os.path.isfile(mesh_path):
-        raise DataError(f"mesh file not found: {mesh_path}")
+    """The (existing) mesh file as a trimesh.Trimesh with faces, or a DataError."""
     mesh = load_mesh(mesh_path)
     if len(mesh.faces) == 0:
         raise DataError(f"{mesh_path}: the mesh has zero faces (and {len(mesh.vertices)} vertices); "
