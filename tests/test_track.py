@@ -108,10 +108,10 @@ def test_the_search_brings_a_guess_from_outside_the_fields_reach(hall_map):
 
 
 def test_settled_points_in_a_finished_submap_keep_tracking_it(hall_map):
-    """A map of submaps keeps no pair store for the submaps it is not mapping (`submaps.query_view`), so
+    """A map of submaps keeps no pair store for the submaps it is not mapping (`query.query_view`), so
     `min_seen` cannot count their frames: every point of such a map is settled, and tracking it with
     `min_seen` gives what tracking it with every point gives (it raised an AttributeError before)."""
-    from jaxmap.n3.submaps import query_view
+    from jaxmap.n3.query import query_view
 
     parked = query_view(hall_map.state)
     every = track_scan(hall_map.static, parked, scan(), perturbed())

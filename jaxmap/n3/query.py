@@ -4,6 +4,7 @@ point filter uses it too), and host-side wrappers: world -> map frame in float64
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -22,8 +23,9 @@ from jaxmap.n3.state import N3State, N3Static, origin_world
 CHUNK = 1 << 16  # points per compiled query call
 
 
-def query(static: N3Static, state: N3State, points_m):
-    """SDF at map-frame points [N, 3] -> (sdf [N] float32, valid [N] bool).
+def query(static: N3Static | QueryStatic, state: N3State, points_m):
+    """SDF at map-frame points [N, 3] -> (sdf [N] float32, valid [N] bool) (static: an N3Static, or the
+    QueryStatic of one: the fields a query reads).
 
     A point is valid where the 8 corners of its level-`mask_level` voxel have features (0 = only
     inside allocated leaf voxels; 1 = inside their 2x parents, which closes the gaps between LiDAR
@@ -47,15 +49,50 @@ def voxel_rows(static: N3Static, state: N3State, points_m):
     return hashing.lookup(state.voxels, jnp.concatenate([pv, jnp.zeros_like(pv[:, :1])], -1))
 
 
+@dataclasses.dataclass(frozen=True)
+class QueryStatic:
+    """What `query` reads of an N3Static (the compiled query programs' static argument): maps whose configs
+    differ only in what a query does not read (training, window, preprocessing, the submaps' layout) share
+    their query programs, in one process and in the compile cache."""
+
+    leaf: float
+    levels: int
+    mask_level: int
+    min_leaf_corners: int
+    evidence: bool
+    void_frames: int
+
+    @classmethod
+    def of(cls, static) -> "QueryStatic":
+        return cls(static.leaf, static.levels, static.mask_level, static.min_leaf_corners, static.evidence,
+                   static.void_frames)
+
+
+def query_view(state: N3State) -> N3State:
+    """What a query and the mesh read of a state (hash tables, features, decoder, evidence, origin): without
+    the pair store, the Adam moments and the voxels' corner rows, a third of the memory of the whole (and one
+    pytree for a map being mapped and one read back: one compiled query program for both)."""
+    return state.replace(store=None, pool=None, feature_opt=None, decoder_opt=None, voxel_corner_rows=None)
+
+
 @functools.partial(jax.jit, static_argnums=0)
+def _query_jit(qs: QueryStatic, view: N3State, points_m):
+    return query(qs, view, points_m)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _query_grad_jit(qs: QueryStatic, view: N3State, points_m):
+    return sdf_and_grad(lambda p: query(qs, view, p)[0], points_m)
+
+
 def query_jit(static: N3Static, state: N3State, points_m):
-    return query(static, state, points_m)
+    """(sdf [N], valid [N]) at map-frame points [N, 3], compiled once per QueryStatic and shapes."""
+    return _query_jit(QueryStatic.of(static), query_view(state), points_m)
 
 
-@functools.partial(jax.jit, static_argnums=0)
 def query_grad_jit(static: N3Static, state: N3State, points_m):
     """(sdf [N], d sdf / d x [N, 3]) at map-frame points [N, 3]."""
-    return sdf_and_grad(lambda p: query(static, state, p)[0], points_m)
+    return _query_grad_jit(QueryStatic.of(static), query_view(state), points_m)
 
 
 def query_world(static: N3Static, state: N3State, points_w, grad: bool = False, small_tail: bool = False):

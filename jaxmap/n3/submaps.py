@@ -39,7 +39,7 @@ import numpy as np
 from jaxmap import hostmem
 from jaxmap.geometry import path_length
 from jaxmap.n3 import checkpoint as n3checkpoint, window
-from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_world
+from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_view, query_world
 from jaxmap.n3.state import N3State, N3Static, origin_world
 from jaxmap.n3.evidence import void as void_of
 
@@ -111,12 +111,6 @@ def blend_weights(dist: np.ndarray, valid: np.ndarray, band: float) -> np.ndarra
         else:
             w = (d <= dmin).astype(np.float64)
     return np.where(np.isfinite(d) & np.isfinite(dmin), w, 0.0)
-
-
-def query_view(state: N3State) -> N3State:
-    """What a query and the mesh read of a state (hash tables, features, decoder, evidence, origin): without
-    the pair store, the Adam moments and the voxels' corner rows, a third of the memory of the whole."""
-    return state.replace(store=None, pool=None, feature_opt=None, decoder_opt=None, voxel_corner_rows=None)
 
 
 def state_bounds(static: N3Static, state: N3State) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
@@ -335,7 +329,7 @@ class Submaps:
 
     def _read_submap(self, k, pts_w, idx, j, sdf, valid, g, limit) -> None:
         info = self.infos[k]
-        state = query_view(self.state(k, limit))  # (the live state read as the others are: one program each size)
+        state = self.state(k, limit)
         local = to_local(info.pose, pts_w)
         s, v = query_world(self.static, state, local, small_tail=True)
         sdf[idx, j], valid[idx, j] = s, v

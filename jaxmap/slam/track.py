@@ -47,7 +47,7 @@ import numpy as np
 
 from jaxmap.geometry import einsum, matmul, orthonormalize
 from jaxmap.n3 import window
-from jaxmap.n3.query import query, voxel_rows
+from jaxmap.n3.query import QueryStatic, query, voxel_rows
 from jaxmap.n3.state import N3State, N3Static, origin_world
 
 
@@ -240,9 +240,10 @@ def refine_pose(sdf_fn, points_s, mask, R0, t0, opts: TrackOptions = TrackOption
 
 
 @functools.partial(jax.jit, static_argnums=(0, 1))
-def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search,
+def track_program(static: QueryStatic, opts: TrackOptions, state: N3State, points_s, mask, R0, t0, search,
                   min_seen) -> Refined:
     """`refine_pose` against the N3 map (state) in its map frame: one compiled program per (static, opts)
+    (static: what the query reads of the map's N3Static, so maps that differ only in training share it)
     (the search's widths are the traced `search`; a half-width of 0 skips it). With opts.min_seen >= 1 the
     settled test is compiled in and `min_seen` (traced int32) is its bar, <= 1: every point settled (so the
     tracker's two calls in `jaxmap slam`, the settled points' and every point's, share one program)."""
@@ -256,7 +257,7 @@ def track_program(static: N3Static, opts: TrackOptions, state: N3State, points_s
     return refine_pose(sdf_fn, points_s, mask, R0, t0, opts, search)
 
 
-def frames_seen(static: N3Static, state: N3State, points_m):
+def frames_seen(static: N3Static | QueryStatic, state: N3State, points_m):
     """[N] int32: frames that gave training pairs to the leaf voxel of each map-frame point [N, 3] (0: none).
     A finished submap keeps no pair store (`jaxmap.n3.submaps`): every point of it counts as seen enough."""
     if state.store is None:
@@ -287,7 +288,7 @@ def track_scan(static: N3Static, state: N3State, points_s, T_init, opts: TrackOp
     # one compile for any widths (and none), and one for any min_seen >= 1 (traced)
     flags = dataclasses.replace(opts, search_m=1.0, search_yaw_deg=0.0, min_seen=min(opts.min_seen, 1))
     widths = np.array([max(opts.search_m, 0.0), np.deg2rad(opts.search_yaw_deg)], np.float32)
-    out = jax.device_get(track_program(static, flags, state, pts, mask, T_init[:3, :3].astype(np.float32), t0,
+    out = jax.device_get(track_program(QueryStatic.of(static), flags, state, pts, mask, T_init[:3, :3].astype(np.float32), t0,
                                        widths, np.int32(opts.min_seen)))
     pose = np.eye(4)
     pose[:3, :3] = np.asarray(out.R, np.float64)
