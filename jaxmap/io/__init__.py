@@ -30,7 +30,8 @@ from jaxmap.io.depth import (DepthSequence, backproject_depth, pixel_rays, read_
 from jaxmap.io.kitti import (SensorFrame, KittiSequence, Sequence, camera_poses_from_lidar, lidar_poses_from_camera,
                              read_calib, read_poses, select_frames, write_calib, write_poses)
 from jaxmap.io.las import LasSequence, is_las_file, list_las, read_las
-from jaxmap.io.pointcloud import (read_mesh_ply, read_pcd, read_points_ply, read_points_ply_chunks, read_scan, write_mesh_ply,
+from jaxmap.io.ply_pieces import read_points_ply_chunks
+from jaxmap.io.pointcloud import (read_mesh_ply, read_pcd, read_points_ply, read_scan, write_mesh_ply,
                                   write_points_ply, write_scan_bin)
 from jaxmap.io.replica import ReplicaSequence, is_replica
 from jaxmap.io.rosbag import RosbagSequence, describe, is_rosbag

@@ -26,7 +26,8 @@ SCAN_EXTENSIONS = (".bin", ".ply", ".pcd")
 # ------------------------------------------------------------------------------------------------
 
 
-def _check_file(path) -> str:
+def check_file(path) -> str:
+    """The path as a string, or a DataError when it is not a file."""
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise DataError(f"{path}: file not found; check the path")
@@ -50,7 +51,7 @@ def read_scan(path) -> np.ndarray:
     dropped and counted in a warning on the "jaxmap" logger. Raises DataError for a missing,
     truncated or unreadable file.
     """
-    path = _check_file(path)
+    path = check_file(path)
     ext = os.path.splitext(path)[1].lower()
     if ext == ".bin":
         size = os.path.getsize(path)
@@ -143,15 +144,15 @@ def _ply_type(name: str, path: str) -> str:
     return _PLY_TYPES[name]
 
 
-def _parse_ply(path: str, want_faces: bool):
+def parse_ply(path: str, want_faces: bool):
     """Parse a PLY file into {element name: {property: array}} for 'vertex' (and 'face').
 
     Supports ascii, binary_little_endian and binary_big_endian; list properties are read for
     faces (all faces must have the same vertex count in binary files).
     """
-    path = _check_file(path)
+    path = check_file(path)
     with open(path, "rb") as f:
-        fmt, elements = _ply_header(f, path)
+        fmt, elements = ply_header(f, path)
         body = f.read()
     wanted = {"vertex"} | ({"face"} if want_faces else set())
     if fmt == "ascii":
@@ -166,7 +167,7 @@ def _parse_ply(path: str, want_faces: bool):
     return out
 
 
-def _ply_header(f, path: str):
+def ply_header(f, path: str):
     """Read a PLY header from the open binary file f, leaving f at the body: (format, elements), elements
     [[name, count, [(prop, dtype) or (prop, ("list", count_dtype, item_dtype))]]] in file order."""
     magic = f.readline().strip()
@@ -293,7 +294,7 @@ def read_points_ply(path, return_normals: bool = False, return_classes: bool = F
     unreadable file.
     """
     path = os.fspath(path)
-    v = _parse_ply(path, want_faces=False)["vertex"]
+    v = parse_ply(path, want_faces=False)["vertex"]
     pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
     if not return_normals and not return_classes:
         return pts
@@ -306,61 +307,10 @@ def read_points_ply(path, return_normals: bool = False, return_classes: bool = F
     return tuple(out)
 
 
-def read_points_ply_chunks(path, chunk: int = 2_000_000):
-    """The vertices of a PLY file (point cloud or mesh) in pieces of at most `chunk` rows, in file order:
-    yields (points [n,3] float32, normals [n,3] float32 or None, classes [n] uint8 or None), as
-    `read_points_ply(..., return_normals=True, return_classes=True)` would return them, sliced.
-
-    A binary file whose elements before the vertices have fixed-size rows is read a piece at a time, so
-    what is held is one piece, not the file (a long drive's gt_points.ply is ~2 GB; a memory map would
-    count every page read in the process's resident memory); any other file is parsed whole, then sliced."""
-    path = _check_file(path)
-    with open(path, "rb") as f:
-        fmt, elements = _ply_header(f, path)
-        layout = _vertex_rows(path, fmt, elements, f.tell())
-        if layout is None:  # ascii, or a list element before the vertices: parse it whole
-            v = _parse_ply(path, want_faces=False)["vertex"]
-            names, n = tuple(v), len(v["x"])
-            pieces = ({k: np.asarray(x)[a:a + chunk] for k, x in v.items()} for a in range(0, n, chunk))
-        else:
-            dt, offset, n = layout
-            names = dt.names
-            f.seek(offset)
-            pieces = (np.fromfile(f, dtype=dt, count=min(chunk, n - a)) for a in range(0, n, chunk))
-        for c in "xyz":
-            if c not in names:
-                raise DataError(f"{path}: PLY vertices lack property '{c}'")
-        has_n, has_c = all(k in names for k in ("nx", "ny", "nz")), "class" in names
-        for r in pieces:
-            yield (np.stack([r["x"], r["y"], r["z"]], axis=1).astype(np.float32),
-                   np.stack([r["nx"], r["ny"], r["nz"]], axis=1).astype(np.float32) if has_n else None,
-                   np.asarray(r["class"]).astype(np.uint8) if has_c else None)
-
-
-def _vertex_rows(path: str, fmt: str, elements, body_at: int):
-    """(row dtype, byte offset, count) of the vertex rows of a binary PLY, or None when they cannot be
-    read a piece at a time (ascii, or an element of list rows before the vertices)."""
-    if fmt == "ascii":
-        return None
-    endian = "<" if fmt == "binary_little_endian" else ">"
-    offset = body_at
-    for name, count, props in elements:
-        if any(isinstance(t, tuple) for _, t in props):
-            return None
-        dt = np.dtype([(p, endian + t) for p, t in props])
-        if name == "vertex":
-            if offset + dt.itemsize * count > os.path.getsize(path):
-                raise DataError(f"{path}: PLY declares {count} 'vertex' rows but the file is shorter; "
-                                "the file is truncated")
-            return dt, offset, count
-        offset += dt.itemsize * count
-    raise DataError(f"{path}: PLY has no 'vertex' element; not a point cloud or mesh")
-
-
 def read_mesh_ply(path):
     """Read a triangle mesh PLY: (vertices [V,3] float32, faces [F,3] int32)."""
     path = os.fspath(path)
-    d = _parse_ply(path, want_faces=True)
+    d = parse_ply(path, want_faces=True)
     v = d["vertex"]
     verts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
     if "face" not in d or not d["face"]:
@@ -440,7 +390,7 @@ _PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("I", 1): "i1", ("I", 2): "i2", ("
 def read_pcd(path) -> np.ndarray:
     """Read x,y,z of a PCD file ([N,3] float32). ascii and binary are parsed with numpy;
     binary_compressed goes through open3d (imported lazily). Non-finite points are kept here."""
-    path = _check_file(path)
+    path = check_file(path)
     with open(path, "rb") as f:
         raw = f.read()
     hdr = {}
@@ -519,5 +469,5 @@ def natural_key(name: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
-__all__ = ["read_scan", "write_scan_bin", "read_points_ply", "read_points_ply_chunks", "write_points_ply", "read_mesh_ply",
+__all__ = ["read_scan", "write_scan_bin", "read_points_ply", "write_points_ply", "read_mesh_ply",
            "write_mesh_ply", "read_pcd", "drop_nonfinite", "SCAN_EXTENSIONS"]

@@ -12,6 +12,7 @@ import os
 import numpy as np
 
 from jaxmap.errors import DataError
+from jaxmap.metrics.culling import GtCuller, as_points, cull_gt, culled_or_fail, no_gt_left  # noqa: F401  (step 1)
 
 log = logging.getLogger("jaxmap.metrics")
 
@@ -34,15 +35,6 @@ CROP_XY_GROW_M = 0.02
 FLOOR_MAX_EDGE_M = 0.5     # the GT mesh is subdivided to this edge length before it is cropped as a prediction
 OBSERVED_VOXEL_M = 0.05    # observed scan points are thinned to one per voxel of this size for culling
 _CHUNK = 2_000_000         # samples generated / down-sampled per piece (bounded memory)
-
-
-def _as_points(x, name: str) -> np.ndarray:
-    a = np.asarray(x, dtype=np.float64)
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise DataError(f"{name}: expected an array of shape [N,3], got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise DataError(f"{name}: contains NaN or inf")
-    return a
 
 
 def _nn(tree_points: np.ndarray, query: np.ndarray, upper: float = np.inf):
@@ -74,57 +66,6 @@ def mesh_distance(mesh, query: np.ndarray) -> np.ndarray | None:
                         o3d.core.Tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
     q = o3d.core.Tensor(np.ascontiguousarray(query, dtype=np.float32))
     return scene.compute_distance(q).numpy().astype(np.float64)
-
-
-class GtCuller:
-    """Step 1 of the protocol as a test of GT points, for GT read in pieces (`keep` of each piece gives
-    what `cull_gt` of the whole would): the trees of the sensor positions and the observed points are
-    built once. Arguments as `cull_gt`'s."""
-
-    def __init__(self, *, observed_points=None, cull_distance_m: float = 0.3, sensor_positions=None,
-                 eval_radius_m: float = -1.0):
-        from scipy.spatial import cKDTree
-
-        self.cull_distance_m, self.eval_radius_m = cull_distance_m, eval_radius_m
-        self._sensors = self._observed = None  # (None: that test is off)
-        self._no_sensor = False                # the radius test is on and there is no sensor: nothing is kept
-        if eval_radius_m is not None and eval_radius_m > 0:
-            if sensor_positions is None:
-                raise DataError("eval_radius_m > 0 needs sensor_positions (the pose translations)")
-            sp = _as_points(sensor_positions, "sensor_positions")
-            self._no_sensor = len(sp) == 0
-            self._sensors = cKDTree(sp) if len(sp) else None
-        if observed_points is not None:
-            obs = _as_points(observed_points, "observed_points")
-            if len(obs) == 0:
-                raise DataError("observed_points is empty: nothing was observed, so all GT would be culled")
-            self._observed = cKDTree(obs)
-
-    def keep(self, gt_points) -> np.ndarray:
-        """[N] bool: which of the GT points [N,3] (world frame) the protocol keeps."""
-        gt = _as_points(gt_points, "gt_points")
-        idx = np.arange(len(gt)) if not self._no_sensor else np.zeros(0, np.int64)
-        for tree, reach in ((self._sensors, self.eval_radius_m), (self._observed, self.cull_distance_m)):
-            if tree is None or len(idx) == 0:
-                continue
-            d = tree.query(gt[idx], k=1, distance_upper_bound=reach * (1 + 1e-9) + 1e-12, workers=-1)[0]
-            idx = idx[d <= reach]
-        out = np.zeros(len(gt), bool)
-        out[idx] = True
-        return out
-
-
-def cull_gt(gt_points, *, observed_points=None, cull_distance_m: float = 0.3, sensor_positions=None,
-            eval_radius_m: float = -1.0, return_index: bool = False):
-    """Step 1 of the protocol. gt_points [G,3] -> the kept GT points [G',3] (float64, world frame), and
-    with return_index=True also their indices into gt_points [G'] (to carry normals and classes along).
-
-    Kept: within eval_radius_m of some sensor position (when eval_radius_m > 0) and within
-    cull_distance_m of some observed point (when observed_points is given). (`GtCuller` for GT in pieces.)"""
-    gt = _as_points(gt_points, "gt_points")
-    idx = np.flatnonzero(GtCuller(observed_points=observed_points, cull_distance_m=cull_distance_m,
-                                  sensor_positions=sensor_positions, eval_radius_m=eval_radius_m).keep(gt))
-    return (gt[idx], idx) if return_index else gt[idx]
 
 
 def crop_box(gt: np.ndarray, z_grow_m: float = DOWN_SAMPLE_M,
@@ -201,7 +142,7 @@ def voxel_down_sample(points, voxel_m: float, origin=None) -> np.ndarray:
     points: [N,3], or an iterable of [n,3] pieces (then `origin`, the grid anchor, must be given).
     Returns [M,3] float64, one point per occupied voxel (ordered by voxel, not as open3d's hash map)."""
     if isinstance(points, np.ndarray) or origin is None:
-        pieces = [_as_points(points, "points")]
+        pieces = [as_points(points, "points")]
         if origin is None:
             if len(pieces[0]) == 0:
                 return np.zeros((0, 3))
@@ -242,8 +183,8 @@ def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m:
     predicted point (or none within acc_truncation_m) gives an infinite accuracy and zero precision."""
     if not threshold_m > 0:
         raise DataError(f"threshold_m must be positive, got {threshold_m}")
-    pred = _as_points(pred_ds, "pred_points")
-    gt = _as_points(gt_ds, "gt_points")
+    pred = as_points(pred_ds, "pred_points")
+    gt = as_points(gt_ds, "gt_points")
     d_p = _nn_dist(gt, pred)                  # pred -> nearest GT (accuracy, precision)
     near = d_p < acc_truncation_m
     n_hit_all = int(np.sum(d_p < threshold_m))  # every predicted point, no drop (precision_all)
@@ -279,20 +220,6 @@ def protocol_metrics(pred_ds, gt_ds, threshold_m: float = 0.1, acc_truncation_m:
     }
 
 
-def culled_or_fail(gt_points, cull_distance_m, eval_radius_m, **kw):
-    gt, idx = cull_gt(gt_points, cull_distance_m=cull_distance_m, eval_radius_m=eval_radius_m, return_index=True,
-                      **kw)
-    if len(gt) == 0:
-        raise DataError(no_gt_left(cull_distance_m, eval_radius_m))
-    return gt, idx
-
-
-def no_gt_left(cull_distance_m, eval_radius_m) -> str:
-    """The error of a culling that kept no GT point."""
-    return (f"no GT point is left after culling (cull distance {cull_distance_m} m, eval radius "
-            f"{eval_radius_m} m): do the GT and the scans share a frame?")
-
-
 def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_points=None,
              cull_distance_m: float = 0.3, sensor_positions=None, eval_radius_m: float = -1.0,
              down_sample_m: float = DOWN_SAMPLE_M, acc_truncation_m: float = ACC_TRUNCATION_M,
@@ -312,7 +239,7 @@ def evaluate(pred_points, gt_points, *, threshold_m: float = 0.1, observed_point
 
     Returns: dict with the keys of METRIC_KEYS (+ n_pred_far); see :func:`protocol_metrics`.
     """
-    pred = _as_points(pred_points, "pred_points")
+    pred = as_points(pred_points, "pred_points")
     gt, _ = culled_or_fail(gt_points, cull_distance_m, eval_radius_m, observed_points=observed_points,
                             sensor_positions=sensor_positions)
     lo, hi = crop_box(gt, down_sample_m)
@@ -377,8 +304,8 @@ def signed_error_by_class(pred_points, gt_points, gt_normals, gt_classes, class_
     max_dist_m, the signed distance is dot(p - g, n_g) with n_g the GT normal (pointing out of solids /
     up from the ground: positive = the predicted surface lies outside / above the true one); the values
     are grouped by g's class. Classes that no predicted point reaches are left out."""
-    pred = _as_points(pred_points, "pred_points")
-    gt = _as_points(gt_points, "gt_points")
+    pred = as_points(pred_points, "pred_points")
+    gt = as_points(gt_points, "gt_points")
     nrm = np.asarray(gt_normals, dtype=np.float64)
     cls = np.asarray(gt_classes).astype(np.int64)
     if nrm.shape != gt.shape or cls.shape != (len(gt),):

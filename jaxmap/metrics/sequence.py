@@ -14,9 +14,8 @@ from jaxmap.errors import DataError
 from jaxmap.frame_loop import Frame, Prefetcher, Progress, run_frames
 from jaxmap.geometry import transform_points
 from jaxmap.io import open_sequence
+from jaxmap.metrics.culling import GtCuller, no_gt_left
 from jaxmap.metrics.protocol import (
-    GtCuller,
-    no_gt_left,
     load_mesh,
     signed_error_by_class,
     mesh_arrays,
@@ -215,16 +214,9 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
                                            end_frame=end_frame, every_frame=every_frame,
                                            min_range_m=min_range_m, max_range_m=max_range_m)
     ghost_boxes = _ghost_boxes(data_dir, begin_frame, end_frame, every_frame) if ghost else None
-    culler = GtCuller(observed_points=observed, cull_distance_m=cull_distance_m, sensor_positions=sensors,
-                      eval_radius_m=eval_radius_m)
-    gtd = read_gt_culled(data_dir, culler, ghost_boxes)
-    log.info("eval: %d GT points (%d kept), %d observed points (5 cm), %d sensor positions",
-             gtd["count"], len(gtd["points"]), len(observed), len(sensors))
-    del observed, culler
-    hostmem.trim()  # (the pieces' heap back to the system before the protocol's own peak)
+    gtd = _kept_gt(data_dir, observed, sensors, cull_distance_m, eval_radius_m, ghost_boxes)
+    del observed
     gt = gtd["points"]
-    if len(gt) == 0:
-        raise DataError(no_gt_left(cull_distance_m, eval_radius_m))
     kw = dict(threshold_m=threshold_m, n_samples=n_samples, seed=seed, down_sample_m=DOWN_SAMPLE_M,
               acc_truncation_m=ACC_TRUNCATION_M, comp_truncation_m=COMP_TRUNCATION_M)
     m, pred = evaluate_culled(v, f, gt, **kw)
@@ -246,6 +238,19 @@ def evaluate_mesh_file(mesh_path, data_dir, threshold_m: float = 0.1, cull_dista
                              max_range_m=max_range_m)
             m["floor"] = _floor_metrics(data_dir, gtd, kw, ghost_boxes, has_classes, selection)
     return m
+
+
+def _kept_gt(data_dir: str, observed, sensors, cull_distance_m: float, eval_radius_m: float, ghost_boxes) -> dict:
+    """`read_gt_culled` of the run's observed points [O,3] and sensor positions [S,3], logged; a DataError
+    when no GT point is kept."""
+    gtd = read_gt_culled(data_dir, GtCuller(observed_points=observed, cull_distance_m=cull_distance_m,
+                                            sensor_positions=sensors, eval_radius_m=eval_radius_m), ghost_boxes)
+    log.info("eval: %d GT points (%d kept), %d observed points (5 cm), %d sensor positions",
+             gtd["count"], len(gtd["points"]), len(observed), len(sensors))
+    hostmem.trim()  # (the pieces' heap back to the system before the protocol's own peak)
+    if len(gtd["points"]) == 0:
+        raise DataError(no_gt_left(cull_distance_m, eval_radius_m))
+    return gtd
 
 
 def _mesh_of(mesh_path: str):
