@@ -8,7 +8,7 @@ import os
 import numpy as np
 
 from jaxmap.errors import DataError
-from jaxmap.io.pointcloud import check_file, parse_ply, ply_header
+from jaxmap.io.pointcloud import check_file, parse_ply, ply_header, vertex_arrays
 
 
 def read_points_ply_chunks(path, chunk: int = 2_000_000):
@@ -35,11 +35,8 @@ def read_points_ply_chunks(path, chunk: int = 2_000_000):
         for c in "xyz":
             if c not in names:
                 raise DataError(f"{path}: PLY vertices lack property '{c}'")
-        has_n, has_c = all(k in names for k in ("nx", "ny", "nz")), "class" in names
         for r in pieces:
-            yield (np.stack([r["x"], r["y"], r["z"]], axis=1).astype(np.float32),
-                   np.stack([r["nx"], r["ny"], r["nz"]], axis=1).astype(np.float32) if has_n else None,
-                   np.asarray(r["class"]).astype(np.uint8) if has_c else None)
+            yield vertex_arrays(r)
 
 
 def _vertex_rows(path: str, fmt: str, elements, body_at: int):

@@ -294,17 +294,20 @@ def read_points_ply(path, return_normals: bool = False, return_classes: bool = F
     unreadable file.
     """
     path = os.fspath(path)
-    v = parse_ply(path, want_faces=False)["vertex"]
-    pts = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float32)
+    pts, nrm, cls = vertex_arrays(parse_ply(path, want_faces=False)["vertex"])
     if not return_normals and not return_classes:
         return pts
-    out = [pts]
-    if return_normals:
-        out.append(np.stack([v["nx"], v["ny"], v["nz"]], axis=1).astype(np.float32)
-                   if all(k in v for k in ("nx", "ny", "nz")) else None)
-    if return_classes:
-        out.append(np.asarray(v["class"]).astype(np.uint8) if "class" in v else None)
-    return tuple(out)
+    return (pts,) + ((nrm,) if return_normals else ()) + ((cls,) if return_classes else ())
+
+
+def vertex_arrays(rows) -> tuple:
+    """(points [N,3] float32, normals [N,3] float32 or None, classes [N] uint8 or None) of PLY vertex rows
+    (a {property: array} dict or a structured array with x, y, z; nx, ny, nz and class when it has them)."""
+    names = rows.dtype.names if hasattr(rows, "dtype") else tuple(rows)
+    return (np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float32),
+            np.stack([rows["nx"], rows["ny"], rows["nz"]], axis=1).astype(np.float32)
+            if all(k in names for k in ("nx", "ny", "nz")) else None,
+            np.asarray(rows["class"]).astype(np.uint8) if "class" in names else None)
 
 
 def read_mesh_ply(path):

@@ -45,7 +45,10 @@ class GtCuller:
 
     def keep(self, gt_points) -> np.ndarray:
         """[N] bool: which of the GT points [N,3] (world frame) the protocol keeps."""
-        gt = as_points(gt_points, "gt_points")
+        return self._keep(as_points(gt_points, "gt_points"))
+
+    def _keep(self, gt: np.ndarray) -> np.ndarray:
+        """`keep` of points already checked (`as_points`)."""
         idx = np.arange(len(gt)) if not self._no_sensor else np.zeros(0, np.int64)
         for tree, reach in ((self._sensors, self.eval_radius_m), (self._observed, self.cull_distance_m)):
             if tree is None or len(idx) == 0:
@@ -66,7 +69,7 @@ def cull_gt(gt_points, *, observed_points=None, cull_distance_m: float = 0.3, se
     cull_distance_m of some observed point (when observed_points is given). (`GtCuller` for GT in pieces.)"""
     gt = as_points(gt_points, "gt_points")
     idx = np.flatnonzero(GtCuller(observed_points=observed_points, cull_distance_m=cull_distance_m,
-                                  sensor_positions=sensor_positions, eval_radius_m=eval_radius_m).keep(gt))
+                                  sensor_positions=sensor_positions, eval_radius_m=eval_radius_m)._keep(gt))
     return (gt[idx], idx) if return_index else gt[idx]
 
 

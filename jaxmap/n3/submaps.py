@@ -228,11 +228,14 @@ class Submaps:
         if k in self.states:
             self.states.move_to_end(k)
             return self.states[k]
-        live = self.active is not None and self.live is not None
-        self._fit((limit or self.limit) - int(live) - 1)  # room for it
+        self._fit((limit or self.limit) - self._live_held() - 1)  # room for it
         state = self._read(k)
         self.states[k] = state
         return state
+
+    def _live_held(self) -> int:
+        """1 when the submap being mapped is held (by the mapper, `live`), else 0: it counts in `limit`."""
+        return int(self.active is not None and self.live is not None)
 
     def release(self) -> None:
         """Drop every resident state and the live one's reader (the map is over: `SubmapMapper.release`)."""
@@ -371,7 +374,7 @@ class Submaps:
             return extract_mesh_groups(sdf_fn_of, cell_groups, static.leaf, res,
                                        min_component_faces=min_component_faces)
         finally:  # back to `submaps.resident` once meshed (what the end of a run holds while it is evaluated)
-            self._fit(self.limit - int(self.active is not None and self.live is not None))
+            self._fit(self.limit - self._live_held())
 
     def _cells_world(self, k: int, limit: int) -> np.ndarray:
         """[M, 3] int64 world-lattice leaf cells that submap k meshes (its non-void leaves, with their
