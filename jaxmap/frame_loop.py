@@ -74,8 +74,8 @@ class Frame:
     image: [H, W] float32 the whole scan's range image (`jaxmap.range_image`; N3's free-space evidence);
     dynamic: [N] bool, the points inside the frame's moving-object boxes (`jaxmap.metrics.dynamic`; None
     where the sequence has none); batch: the scan as a frame program takes it, padded and on the device,
-    where the loader made it (N3's `scan.Uploader`); origin: [3] float64 world position of the map frame the
-    batch is in (N3's `scan.Uploader`); prepare_s: seconds the loader took (off the main
+    where the loader made it (N3's `scan.Uploader`); place: where that batch is mapped (N3's
+    `routing.Place`: the map frame it is in, and in a map of submaps the submap); prepare_s: seconds the loader took (off the main
     thread); wait_s: seconds the loop waited for the frame (`run_frames` sets it)."""
 
     position: int
@@ -86,7 +86,7 @@ class Frame:
     image: np.ndarray | None = None
     dynamic: np.ndarray | None = None
     batch: Any = None
-    origin: np.ndarray | None = None
+    place: Any = None
     prepare_s: float = 0.0
     wait_s: float = 0.0
 
@@ -241,7 +241,7 @@ class SubmitSteps:
     def submit(self, frame: Frame) -> list[Finished]:
         self._frames.append(frame)
         return self._paired(self.mapper.submit(frame.batch, points=len(frame.points), prepare_s=frame.prepare_s,
-                                               wait_s=frame.wait_s, pose=frame.pose, origin=frame.origin))
+                                               wait_s=frame.wait_s, place=frame.place))
 
     def drain(self) -> list[Finished]:
         return self._paired(self.mapper.finish())

@@ -209,39 +209,71 @@ def test_submaps_are_refused_where_they_would_be_ignored():
         N3Mapper(load_config("configs/city.yaml", SMALL + SUB))
 
 
-def test_frames_uploaded_at_another_submaps_origin_reach_the_map_in_its_frame(tmp_path, monkeypatch):
-    """`jaxmap map` uploads frames ahead (`scan.Uploader`), at the origin of the submap mapped then; a frame
-    that lands in another submap is moved into that one's map frame (`Frame.origin`, `scan_batch.shift`)
-    before its program runs: the batch the grid gets equals the frame uploaded at that submap's origin."""
+@pytest.mark.parametrize("revisit", [True, False])
+def test_frames_uploaded_before_a_switch_are_made_in_the_submap_they_map_into(tmp_path, monkeypatch, revisit):
+    """`jaxmap map` uploads frames ahead (`scan.Uploader`), and the uploader alone routes them
+    (`routing.Route`): with every frame of a drive out and back uploaded before the first is mapped (a
+    full prefetch queue across every switch), each frame reaches the grid in the map frame of the submap
+    it is mapped into, bit for bit the batch made there, and the chain is the one the map builds routing
+    each frame itself (`add_frame`). An uploader whose origin the main thread moves at a switch would
+    make the queued frames in the old submap's frame."""
     from jaxmap.frame_loop import Frame
-    from jaxmap.n3 import scan
+    from jaxmap.n3 import routing, scan
     from jaxmap.n3.mapper import N3Mapper as Grid
 
-    frames = _frames(14)
-    m = SubmapMapper(load_config("configs/city.yaml", SMALL + SUB), directory=str(tmp_path / "s"),
-                     first_scan=frames[0])
-    upload = scan.Uploader(m.origin, raw=False)  # never follows the submaps: every frame at submap 0's origin
-    got = []
-    real = Grid.submit
+    xs = list(range(13)) + list(range(11, -1, -1))
+    frames = [(corridor_scan(float(x), max_range=10.0), pose_at(float(x))) for x in xs]
+    cfg = load_config("configs/city.yaml", SMALL + SUB + [f"submaps.revisit={str(revisit).lower()}"])
+    m = SubmapMapper(start=scan.MapStart.of(cfg, *frames[0]), directory=str(tmp_path / "s"))
+    upload, got, real = m.uploader(), [], Grid.submit
 
     def spy(self, batch, **kw):
         got.append((jax.tree_util.tree_map(np.asarray, batch), self.origin.copy()))
         return real(self, batch, **kw)
 
     monkeypatch.setattr(Grid, "submit", spy)
-    prepared = []
+    queued = []
     for i, (pts, pose) in enumerate(frames):
         p, nrm, pose, img = scan.preprocess(pts, pose, m.cfg.preprocess, i, image=m.static.evidence)
-        f = upload(Frame(i, i, p, pose, nrm, img))
-        prepared.append(Frame(i, i, p, pose, nrm, img))
-        m.submit(f.batch, points=len(p), pose=f.pose, origin=f.origin)
+        queued.append((Frame(i, i, p, pose, nrm, img), upload(Frame(i, i, p, pose, nrm, img))))
+    for _, f in queued:
+        m.submit(f.batch, points=len(f.points), place=f.place)
     m.finish()
-    origins = {tuple(o) for _, o in got}
-    assert len(origins) >= 2  # frames went to more than one submap
-    for (batch, origin), frame in zip(got, prepared):
-        want = scan.Uploader(origin, raw=False)(frame).batch
-        np.testing.assert_allclose(batch.points, np.asarray(want.points), atol=2e-5)
-        np.testing.assert_allclose(batch.sensor, np.asarray(want.sensor), atol=2e-5)
+    monkeypatch.undo()
+
+    alone = SubmapMapper(cfg, directory=str(tmp_path / "a"))
+    for pts, pose in frames:
+        alone.add_frame(pts, pose)
+    chain = [r["submap"] for r in m.timings]
+    assert chain == [r["submap"] for r in alone.timings] and len(set(chain)) >= 2, chain
+    assert (chain[-1] == 0) == revisit  # the way back: the first submap again, or (no revisit) a new one
+    for k, info in enumerate(m.submaps.infos):
+        np.testing.assert_array_equal(info.anchor, alone.submaps.infos[k].anchor)
+    for (batch, origin), (plain, f), k in zip(got, queued, chain):
+        np.testing.assert_array_equal(origin, routing.submap_origin(m.static, m.submaps.infos[k].anchor))
+        want = scan.Uploader(origin, raw=False)(plain).batch
+        np.testing.assert_array_equal(batch.points, np.asarray(want.points))
+        np.testing.assert_array_equal(batch.sensor, np.asarray(want.sensor))
+
+
+def test_a_batch_made_in_another_map_frame_is_refused(tmp_path):
+    from jaxmap.frame_loop import Frame
+    from jaxmap.n3 import routing, scan
+
+    frames = _frames(2)
+    cfg = load_config("configs/city.yaml", SMALL + SUB)
+    m = SubmapMapper(start=scan.MapStart.of(cfg, *frames[0]), directory=str(tmp_path / "s"))
+    p, nrm, pose, img = scan.preprocess(*frames[0], m.cfg.preprocess, 0, image=m.static.evidence)
+    f = scan.Uploader(m.origin + 3.2, raw=False)(Frame(0, 0, p, pose, nrm, img))
+    with pytest.raises(ValueError, match="uploader"):  # no route: which submap is not known
+        m.submit(f.batch, points=len(p), place=f.place)
+    wrong = routing.Place(m.origin + 3.2, 0, pose[:3, 3])
+    with pytest.raises(ValueError, match="map frame"):
+        m.submit(f.batch, points=len(p), place=wrong)
+    assert m.frames == 0 and m.submaps.infos[0].frames == []  # nothing of the refused frame kept
+    one = N3Mapper(load_config("configs/city.yaml", SMALL), first_scan=frames[0])
+    with pytest.raises(ValueError, match="map frame"):
+        one.submit(f.batch, points=len(p), place=f.place)
 
 
 def test_a_drive_back_takes_up_its_old_submap_again(tmp_path):

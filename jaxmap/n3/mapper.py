@@ -144,7 +144,7 @@ class N3Mapper:
 
     def uploader(self) -> scan.Uploader:
         """The frame loop's last reading stage for this map: scans padded as the frames before them, in
-        its map frame, uploaded (`scan.Uploader`; a map of submaps moves its origin: `follow`)."""
+        its map frame, uploaded (`scan.Uploader`)."""
         return scan.Uploader(self._origin, self._start.device, self._bucket)
 
     def _place(self, position_w) -> None:
@@ -178,9 +178,6 @@ class N3Mapper:
         e.g. fewer for the frames SLAM re-adds after a loop correction; `cfg.train.iters` is the map's own."""
         st = self.state
         self.state = st.replace(hyper=st.hyper.replace(iters=jax.device_put(np.int32(iters))))  # (no jnp: it compiles a cast)
-
-    def follow(self, uploader) -> None:
-        """The frame loop's `scan.Uploader` (one grid keeps its origin: nothing to follow; `SubmapMapper`)."""
 
     def add_frame(self, points_s, pose) -> dict:
         """Integrate one scan: points_s [N, 3] float32 sensor frame; pose [4, 4] T_world_sensor. Returns, once
@@ -220,15 +217,16 @@ class N3Mapper:
                        "main_s": time.perf_counter() - (since or t1)}
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0,
-               main_s: float = 0.0, pose=None, origin=None) -> list[tuple[N3Record, np.ndarray | None]]:
+               main_s: float = 0.0, place=None) -> list[tuple[N3Record, np.ndarray | None]]:
         """Dispatch one frame's program and return without waiting for it: batch is its scan as the
         frame program takes it (`scan.Uploader`: padded, in the map frame, on the device), of `points`
         prepared points. Returns (record, kept) of the frames finished meanwhile (the one before it,
         usually), oldest first: the record is the one kept in `timings`, kept ([M] bool, None with
         `preprocess.device`) the prepared points that got training samples. prepare_s / wait_s: seconds
         its preparation took / the loop waited for it; main_s: seconds of the main thread's before the
-        dispatch (in its record's total_s). pose, origin: the frame's pose and the origin its batch was
-        uploaded at (`Frame.origin`), which a map of submaps needs (`SubmapMapper`; one grid ignores them)."""
+        dispatch (in its record's total_s). place: where the uploader made the batch (`routing.Place`,
+        `Frame.place`): a batch made in another map frame is refused (ValueError)."""
+        self._check_place(place)
         if self.static.preprocess is not None and "scan_rows" not in self._headroom:
             # the first frame: size the preprocessed rows by what it keeps
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
@@ -238,6 +236,12 @@ class N3Mapper:
         self.frames += 1
         self._collect()
         return self._take_unreported()
+
+    def _check_place(self, place) -> None:
+        """ValueError for a batch made in another map frame than this map's (`routing.Place`; None: unchecked)."""
+        if place is not None and not np.array_equal(place.origin_w, self._origin):
+            raise ValueError(f"a batch made in the map frame at {place.origin_w} cannot be mapped into the one at "
+                             f"{self._origin}: make the batches with this map's uploader()")
 
     def finish(self) -> list[tuple[N3Record, np.ndarray | None]]:
         """Wait for every frame submitted; (record, kept) of those not returned yet, oldest first."""

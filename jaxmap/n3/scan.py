@@ -20,6 +20,7 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.geometry import SE3, validate_pose
+from jaxmap.n3.routing import Place, Route
 from jaxmap.n3.scan_batch import RawScan, ScanBatch
 from jaxmap.n3.state import N3Static, origin_vox_for
 from jaxmap.preprocess import drop_veil, layout_of, preprocess_points, with_layout
@@ -200,8 +201,9 @@ class MapStart:
 
     def uploader(self, bucket: int = 0) -> "Uploader":
         """The frame loop's last reading stage for this map (`Uploader`), at its origin (the world's before
-        a first pose is known)."""
-        return Uploader(np.zeros(3) if self.anchor is None else self.origin, self.device, bucket)
+        a first pose is known); with submaps.enabled it routes the frames to their submaps (`routing.Route`)."""
+        route = Route.first(self.static, self.cfg.submaps, self.anchor) if self.cfg.submaps.enabled else None
+        return Uploader(np.zeros(3) if self.anchor is None else self.origin, self.device, bucket, route)
 
 
 def batch_of(points_s, normals_s, image, pose, origin_w, bucket: int, raw: bool):
@@ -215,16 +217,18 @@ def batch_of(points_s, normals_s, image, pose, origin_w, bucket: int, raw: bool)
 class Uploader:
     """The last stage of reading ahead (`frame_loop.Prefetcher(then=...)`, one thread, frames in order):
     a prepared frame's scan padded to its bucket (the one of the scans before it while it fits:
-    `bucket_for`), in the map frame at `origin_w` [3] float64, put on the device as the frame's `batch`
-    (a ScanBatch with the frame's range image if it has one, or with `raw` a RawScan the frame program
-    preprocesses), with the origin it is at (`Frame.origin`). `bucket`: the bucket so far; `origin_w` may
-    be moved between frames (a map of submaps moves it to the origin of the submap it maps into)."""
+    `bucket_for`), in its map frame, put on the device as the frame's `batch` (a ScanBatch with the
+    frame's range image if it has one, or with `raw` a RawScan the frame program preprocesses), with
+    where it is mapped (`Frame.place`, a `routing.Place`). The map frame is the one at origin_w [3]
+    float64, or with a `route` (a map of submaps) the frame of the submap the route sends the frame to:
+    this thread alone decides it, so every batch is made in the frame it is mapped in. `bucket`: the
+    bucket so far."""
 
-    def __init__(self, origin_w: np.ndarray, raw: bool, bucket: int = 0):
-        self.origin_w, self.raw, self.bucket = np.asarray(origin_w, np.float64), raw, bucket
+    def __init__(self, origin_w: np.ndarray, raw: bool, bucket: int = 0, route: Route | None = None):
+        self.origin_w, self.raw, self.bucket, self.route = np.asarray(origin_w, np.float64), raw, bucket, route
 
     def __call__(self, frame):
         self.bucket = bucket_for(len(frame.points), self.bucket)
-        origin = self.origin_w  # read once: a map of submaps moves it (`follow`) from the main thread
-        batch = batch_of(frame.points, frame.normals, frame.image, frame.pose, origin, self.bucket, self.raw)
-        return dataclasses.replace(frame, batch=jax.device_put(batch), origin=origin)
+        place = Place(self.origin_w) if self.route is None else self.route(np.asarray(frame.pose)[:3, 3])
+        batch = batch_of(frame.points, frame.normals, frame.image, frame.pose, place.origin_w, self.bucket, self.raw)
+        return dataclasses.replace(frame, batch=jax.device_put(batch), place=place)

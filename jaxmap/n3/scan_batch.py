@@ -71,13 +71,3 @@ def count_kept(static: N3Static, raw: RawScan):
                      max_z=p.max_z_m)
     return jnp.sum(voxel_keep(raw.points, keep, p.vox_down_m), dtype=jnp.int32)
 
-
-@jax.jit
-def shift(batch, delta):
-    """The scan `batch` (a ScanBatch or RawScan) moved into a map frame whose origin lies -delta [3] from
-    its own: its points and sensor (or pose's translation) plus delta (a map of submaps: frames uploaded
-    ahead at the origin of the submap they were meant for, mapped into the next)."""
-    d = jnp.asarray(delta, jnp.float32)
-    if isinstance(batch, RawScan):
-        return batch._replace(translation=batch.translation + d)
-    return batch._replace(points=batch.points + d, sensor=batch.sensor + d)

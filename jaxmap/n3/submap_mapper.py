@@ -20,9 +20,8 @@ import jax
 import numpy as np
 
 from jaxmap import hostmem
-from jaxmap.n3 import core
+from jaxmap.n3 import core, scan
 from jaxmap.n3.mapper import N3Mapper, empty_state
-from jaxmap.n3.scan_batch import shift
 from jaxmap.n3.submaps import NEW, Submaps
 
 
@@ -34,7 +33,7 @@ class SubmapMapper(N3Mapper):
 
     def __init__(self, cfg=None, state=None, timings=None, *, start=None, first_scan=None, first_batch=None,
                  directory: str | None = None, index: dict | None = None):
-        self._subs, self._uploader = None, None
+        self._subs = None
         super().__init__(cfg, state, timings, start=start, first_scan=first_scan, first_batch=first_batch)
         self._local = self.frames          # frames submitted to the active submap's state (its own count)
         self._local_of: dict[int, int] = {}  # frame (the whole map's count) -> its count in its submap
@@ -51,9 +50,11 @@ class SubmapMapper(N3Mapper):
     def submaps(self) -> Submaps:
         return self._subs
 
-    def follow(self, uploader) -> None:
-        """Keep the frame loop's `scan.Uploader` at the origin of the submap being mapped."""
-        self._uploader = uploader
+    def uploader(self) -> scan.Uploader:
+        """The frame loop's last reading stage for this map (`scan.Uploader`): it routes the frames of a drive
+        at known poses to their submaps (`Submaps.route`, handed over: from now on the frames this map is
+        given come with their `Place`) and makes each batch in its submap's frame."""
+        return scan.Uploader(self._origin, self.start.device, self.bucket, self._subs.route())
 
     def _place(self, position_w) -> None:
         super()._place(position_w)
@@ -72,37 +73,54 @@ class SubmapMapper(N3Mapper):
             self._enter(pose)
         local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
         batch, timed = self._batch_of(prepared, local, since)
-        done = self._submit_here(batch, pose, again=stay, **timed)
+        done = self._submit_here(batch, pose[:3, 3], again=stay, **timed)
         return {"frame": self.frames - 1, "submap": self._subs.active, "submap_frame": self._local - 1}, done
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
-               pose=None, origin=None) -> list:
-        """`N3Mapper.submit`, first moving to the submap the frame's pose [4, 4] (T_world_sensor) falls in;
-        origin: [3] the map frame the batch was uploaded in (`Frame.origin`; moved when it is another's)."""
-        if pose is None:
-            raise ValueError("SubmapMapper.submit needs the frame's pose (pose=T_world_sensor)")
-        if self.frames:
-            self._enter(np.asarray(pose, np.float64))
-        if origin is not None and not np.array_equal(self._subs.infos[self._subs.active].pose, np.eye(4)):
+               place=None) -> list:
+        """`N3Mapper.submit` of a batch made by this map's `uploader()`: its place (`routing.Place`) names the
+        submap the route sent it to (the active one, the next new one, or an earlier one), which this map
+        takes up first; the batch is in that submap's map frame already (ValueError otherwise)."""
+        if place is None or place.submap is None:
+            raise ValueError("a map of submaps maps batches routed to their submaps: make them with its uploader() "
+                             "(or map prepared scans with add_prepared)")
+        self._follow(place)
+        self._check_place(place)
+        if not np.array_equal(self._subs.infos[self._subs.active].pose, np.eye(4)):
             raise ValueError("a batch uploaded in the world frame cannot go into a moved submap: map it with "
                              "add_prepared (which places the pose in the submap's frame)")
-        if origin is not None and not np.array_equal(np.asarray(origin, np.float64), self._origin):
-            batch = shift(batch, (np.asarray(origin, np.float64) - self._origin).astype(np.float32))
-        return self._submit_here(batch, pose, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s)
+        return self._submit_here(batch, place.position_w, place=place, points=points, prepare_s=prepare_s,
+                                 wait_s=wait_s, main_s=main_s)
 
-    def _submit_here(self, batch, pose, again: bool = False, **timed) -> list:
-        """`N3Mapper.submit` into the active submap of a frame at world pose [4, 4] (again: a frame of it
-        added again, not a step further along its path)."""
-        self._subs.record(np.asarray(pose, np.float64)[:3, 3], self.frames, again=again)
+    def _submit_here(self, batch, position_w, again: bool = False, **kw) -> list:
+        """`N3Mapper.submit` into the active submap of a frame whose sensor is at world position_w [3] (again:
+        a frame of it added again, not a step further along its path)."""
+        self._subs.record(np.asarray(position_w, np.float64), self.frames, again=again)
         self._local_of[self.frames] = self._local
         self._local += 1
-        return super().submit(batch, **timed)
+        return super().submit(batch, **kw)
+
+    def _follow(self, place) -> None:
+        """Take up the submap a routed frame goes to (`Route` numbers a new one as the next id)."""
+        k, n = int(place.submap), len(self._subs.infos)
+        if k == self._subs.active:
+            return
+        if n == 0 and k == 0:  # a map made with no first pose: the first frame places it
+            self._place(np.asarray(place.position_w, np.float64))
+            return
+        if not 0 <= k <= n:
+            raise ValueError(f"a frame routed to submap {k} of a map of {n}: its route did not start from this map")
+        self._switch(NEW if k == n else k, np.asarray(place.position_w, np.float64))
 
     def _enter(self, pose: np.ndarray) -> None:
-        """Switch to the submap of the frame at `pose` when it is not the active one."""
+        """Switch to the submap of the frame at `pose` when it is not the active one (`Submaps.switch_for`)."""
         target = self._subs.switch_for(pose[:3, 3])
-        if target is None:
-            return
+        if target is not None:
+            self._switch(target, pose[:3, 3])
+
+    def _switch(self, target: int, position_w: np.ndarray) -> None:
+        """Finish the frames in flight, park the active submap and map on in `target` (an id, or NEW: a new
+        one anchored at the sensor's world position_w [3])."""
         self._settle()
         old_id, old = self._subs.active, self._pipe.state
         caps = core.Capacities.of(old)
@@ -116,8 +134,8 @@ class SubmapMapper(N3Mapper):
             # the features get no gradient; measured: the loss of a new submap stayed at 0.12-0.14.)
             new = empty_state(self.static, self.cfg, caps)
             new = new.replace(key=jax.random.fold_in(new.key, len(self._subs.infos)))
-            new = core.set_origin(self.static, new, pose[:3, 3])
-            target = self._subs.start(pose[:3, 3])
+            new = core.set_origin(self.static, new, position_w)
+            target = self._subs.start(position_w)
             self._local = 0
         else:
             new = self._subs.take(target, caps.store_blocks)
@@ -125,8 +143,6 @@ class SubmapMapper(N3Mapper):
         self._subs.active = target
         self._pipe.state = new
         self._origin = core.origin_world(self.static, new)
-        if self._uploader is not None:
-            self._uploader.origin_w = self._origin
         hostmem.trim()
 
     def _collect(self) -> None:

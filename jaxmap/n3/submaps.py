@@ -37,13 +37,12 @@ import os
 import numpy as np
 
 from jaxmap import hostmem
-from jaxmap.geometry import path_length
 from jaxmap.n3 import checkpoint as n3checkpoint, window
+from jaxmap.n3.routing import NEW, Route, next_submap  # noqa: F401  (NEW: re-exported)
 from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_view, query_world
 from jaxmap.n3.state import N3State, N3Static, origin_world
 from jaxmap.n3.evidence import void as void_of
 
-NEW = -1  # `Submaps.switch_for`: start a new submap
 
 
 @dataclasses.dataclass
@@ -163,22 +162,22 @@ class Submaps:
         return info.id
 
     def switch_for(self, position_w: np.ndarray) -> int | None:
-        """Where the frame at sensor position_w [3] (world) is mapped: None = the active submap; NEW = a
-        new one; an id = that earlier submap, whose anchor is the nearest and within half of length_m.
-        With `submaps.revisit` false, a new one once the sensor has driven length_m in the active one."""
-        length = float(self.cfg.submaps.length_m)
-        act = self.infos[self.active]
-        here = to_local(act.pose, position_w[None])[0]
-        if not self.cfg.submaps.revisit:
-            # each pass its own: the length is the path driven in the submap (a drive around a block
-            # never leaves a radius of length_m; its return must be another submap to be moved apart)
-            return None if path_length([*act.path, here]) <= length else NEW
-        if np.linalg.norm(here - act.anchor) <= length:
-            return None
-        d = np.array([np.linalg.norm(to_world(i.pose, i.anchor[None])[0] - position_w) for i in self.infos])
-        d[self.active] = np.inf
-        k = int(np.argmin(d))
-        return k if d[k] <= 0.5 * length else NEW
+        """Where the frame at sensor position_w [3] (world) is mapped (`routing.next_submap`: None = the
+        active submap; NEW = a new one; an id = that earlier submap), the submaps where they are now."""
+        anchors = np.array([to_world(i.pose, i.anchor[None])[0] for i in self.infos])
+        return next_submap(self.cfg.submaps.length_m, self.cfg.submaps.revisit, anchors, self.active,
+                           self.infos[self.active].world_path(), position_w)
+
+    def route(self) -> Route:
+        """The `routing.Route` that goes on from the chain as it is (a resumed `jaxmap map`): the frames of a
+        drive at known poses routed in the thread that uploads them. Refused once a submap has moved (a
+        batch is made in the world's frame shifted, never rotated, as a moved submap's frame would be)."""
+        if any(not np.array_equal(i.pose, np.eye(4)) for i in self.infos):
+            raise ValueError("a map of submaps moved by a pose graph maps its frames with add_prepared (each "
+                             "placed in its submap's frame), not with batches uploaded in the world's frame")
+        sub = self.cfg.submaps
+        path = self.infos[self.active].world_path() if self.infos else ()
+        return Route(self.static, sub.length_m, sub.revisit, [i.anchor for i in self.infos], self.active, path)
 
     def move(self, k: int, pose: np.ndarray) -> None:
         """Place submap k at pose T_world_local [4, 4] (a pose graph moved it as a rigid body): its

@@ -82,7 +82,6 @@ def map_sequence(cfg: MapConfig, out_dir: str, *, resume: bool = False, progress
             raise
         save_config(mapper.cfg, os.path.join(out_dir, "config.yaml"))
     cfg = mapper.cfg
-    mapper.follow(uploader)  # (a map of submaps moves the uploads' origin to the submap it maps into)
     viewer = open_viewer(view, mapper)
     saves = Checkpoints(save=lambda background: mapper.save(ckpt, background=background), path=ckpt,
                         every=max(cfg.checkpoint_every, 1), busy=checkpoint.saving, wait=checkpoint.wait_for_saves,
@@ -131,10 +130,8 @@ def map_at_poses(cfg: MapConfig, seq, poses, progress: bool = True, desc: str = 
     read, preprocessed and uploaded ahead and dispatched ahead of their stats as in `map_sequence`
     (no checkpoints); a map of submaps with `submaps.enabled`. Returns (N3Mapper, frame_loop.FramesRun)."""
     mapper = new_map(first_start(cfg, seq, poses), os.path.join(cfg.output, "submaps"))  # (with submaps.enabled)
-    uploader = mapper.uploader()
-    mapper.follow(uploader)
     frames = Prefetcher(seq, 0, len(seq), functools.partial(prepared_frame, mapper.start.prepare, poses=poses),
-                        then=uploader)
+                        then=mapper.uploader())
     return mapper, run_frames(frames, SubmitSteps(mapper), total=len(seq), progress=Progress(desc, progress))
 
 
