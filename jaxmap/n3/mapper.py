@@ -11,7 +11,7 @@ frame programs one frame ahead of their statistics (`core.FramePipeline`), and k
 from __future__ import annotations
 
 import time
-from typing import TypedDict
+from typing import Callable, TypedDict
 
 import jax
 import numpy as np
@@ -82,11 +82,9 @@ class N3Mapper:
     """Holds one `core.N3State` (in a `core.FramePipeline`, which runs the frame programs one frame ahead
     of their stats) and the host-side record of a run (one `N3Record` a frame, `timings`)."""
 
-    chains_submaps = False   # a map of one grid: a config with submaps.enabled is refused
-
     def __init__(self, cfg: MapConfig | None = None, state: core.N3State | None = None,
                  timings: list | None = None, *, start: MapStart | None = None, first_scan: tuple | None = None,
-                 first_batch=None):
+                 first_batch=None, in_chain: bool = False, on_record: Callable[[N3Record], None] | None = None):
         """The ways in, all through one `scan.MapStart`:
             N3Mapper(cfg)                                     set up by the first frame added (layout, map frame)
             N3Mapper(cfg, first_scan=(points_s [N, 3], pose [4, 4]))   set up from the first frame now
@@ -94,10 +92,13 @@ class N3Mapper:
             N3Mapper(cfg, state, timings)                     a saved map (`load`)
         With a first frame, the frame program is compiled (from first_batch, the first frame as the frame
         loop uploads it, or from first_scan) before the map's buffers are allocated, so the compiler's heap
-        (about a gigabyte on a CPU) and the map are not in memory at the same time."""
+        (about a gigabyte on a CPU) and the map are not in memory at the same time.
+        in_chain: this grid maps the submaps of a map of submaps one after another (`SubmapMapper`, which
+        swaps their states: `detach` / `attach`); otherwise a config with submaps.enabled is refused.
+        on_record(record): called with each frame's record as it comes back, before `timings` keeps it."""
         self._start = start or MapStart.of(cfg or MapConfig(), *(first_scan or ()))
         self.cfg, self.static = self._start.cfg, self._start.static
-        if self.cfg.submaps.enabled and not self.chains_submaps:
+        if self.cfg.submaps.enabled and not in_chain:
             from jaxmap.errors import ConfigError
 
             raise ConfigError("submaps.enabled=true: a map of submaps is a SubmapMapper (jaxmap map makes one); "
@@ -118,6 +119,7 @@ class N3Mapper:
         self._pipe = core.FramePipeline(self.static, state, self._headroom, seed=self.cfg.train.seed,
                                         feature_std=self.cfg.grid.feature_std)
         self._unreported: list[tuple[N3Record, np.ndarray | None]] = []  # finished since `submit` / `finish` returned
+        self._on_record = on_record
         self.frames = int(state.frame)      # frames submitted
         # A host copy of the origin (fixed once the first frame set it): reading the state's every
         # frame would be a second device->host transfer per frame.
@@ -125,15 +127,29 @@ class N3Mapper:
         if self._start.anchor is not None and self.frames == 0:
             self._place(self._start.anchor)
 
+    def detach(self) -> core.N3State:
+        """Finish the frames in flight and hand the map's state over (the map holds none until `attach`):
+        a map of submaps parks the submap it leaves (`SubmapMapper`)."""
+        self.settle()
+        state, self._pipe.state = self._pipe.state, None
+        return state
+
+    def attach(self, state: core.N3State) -> None:
+        """Map on from `state` (of this map's static part and capacities: the compiled frame program is
+        reused): its frame count and map frame are the state's."""
+        self._pipe.state = state
+        self.frames = int(state.frame)
+        self._origin = core.origin_world(self.static, state)
+
     @property
     def state(self) -> core.N3State:
         """The map after every frame added (waits for the frames still on the device)."""
-        self._settle()
+        self.settle()
         return self._pipe.state
 
     @state.setter
     def state(self, value: core.N3State) -> None:
-        self._settle()
+        self.settle()
         self._pipe.state = value
 
     @property
@@ -152,7 +168,7 @@ class N3Mapper:
         self._pipe.state = core.set_origin(self.static, self._pipe.state, position_w)
         self._origin = core.origin_world(self.static, self._pipe.state)
 
-    def _begin(self, points_s, pose) -> None:
+    def begin(self, points_s, pose) -> None:
         """Set the map up from its first frame (a map made without one): the range-image layout read off the
         raw scan points_s [N, 3] (None: a prepared scan, the layout as configured; a new layout makes the
         empty map again: nothing was compiled or mapped yet), the map frame at pose [4, 4] (None: not yet)."""
@@ -185,7 +201,7 @@ class N3Mapper:
         samples; None with `preprocess.device`)."""
         t0 = time.perf_counter()
         if self.frames == 0:  # the layout read off the first raw scan (`add_prepared` places the map frame)
-            self._begin(points_s, None)
+            self.begin(points_s, None)
         prepared, pose = self._start.prepare(points_s, pose, self.frames)
         return self.add_prepared(prepared, pose, since=t0)
 
@@ -210,7 +226,7 @@ class N3Mapper:
         keyword arguments but the pose: its points and timings)."""
         t1 = time.perf_counter()
         if self.frames == 0:  # (again where the map started from a first scan: this frame's pose places it)
-            self._begin(None, pose)
+            self.begin(None, pose)
         self._bucket = scan.bucket_for(len(prepared.points), self._bucket)
         batch = self._start.batch(prepared, pose, self._origin, self._bucket)
         return batch, {"points": len(prepared.points), "prepare_s": t1 - (since or t1),
@@ -226,7 +242,7 @@ class N3Mapper:
         its preparation took / the loop waited for it; main_s: seconds of the main thread's before the
         dispatch (in its record's total_s). place: where the uploader made the batch (`routing.Place`,
         `Frame.place`): a batch made in another map frame is refused (ValueError)."""
-        self._check_place(place)
+        self.check_place(place)
         if self.static.preprocess is not None and "scan_rows" not in self._headroom:
             # the first frame: size the preprocessed rows by what it keeps
             self._headroom["scan_rows"] = scan.bucket_for(int(core.count_kept(self.static, batch)))
@@ -237,7 +253,7 @@ class N3Mapper:
         self._collect()
         return self._take_unreported()
 
-    def _check_place(self, place) -> None:
+    def check_place(self, place) -> None:
         """ValueError for a batch made in another map frame than this map's (`routing.Place`; None: unchecked)."""
         if place is not None and not np.array_equal(place.origin_w, self._origin):
             raise ValueError(f"a batch made in the map frame at {place.origin_w} cannot be mapped into the one at "
@@ -245,14 +261,14 @@ class N3Mapper:
 
     def finish(self) -> list[tuple[N3Record, np.ndarray | None]]:
         """Wait for every frame submitted; (record, kept) of those not returned yet, oldest first."""
-        self._settle()
+        self.settle()
         return self._take_unreported()
 
     def release(self) -> None:
         """The run is over (meshed, its final checkpoint written): drop the map's arrays, so that what comes
         after it (the evaluation) does not run beside them. Its records (`timings`) stay; nothing may read
         the map after this."""
-        self._settle()
+        self.settle()
         self.state = None
         hostmem.trim()
 
@@ -260,7 +276,8 @@ class N3Mapper:
         out, self._unreported = self._unreported, []
         return out
 
-    def _settle(self) -> None:
+    def settle(self) -> None:
+        """Wait for the frames in flight; their records wait for the next `submit` / `finish`."""
         self._pipe.drain()
         self._collect()
 
@@ -287,6 +304,8 @@ class N3Mapper:
                     "voxels_untested": int(fs.voxels_untested),
                     "feature_capacity": int(st.feature_table.shape[0]),
                     "rss_mb": hostmem.rss_mb(), "peak_rss_mb": hostmem.peak_rss_mb()}
+            if self._on_record is not None:
+                self._on_record(info)
             self.timings.append(info)
             # (the mask is not in the timings: a per-point mask per frame would bloat timing.json and the checkpoints)
             self._unreported.append((info, None if device else np.asarray(fs.kept)[:tag["n"]]))

@@ -1,4 +1,4 @@
-"""`SubmapMapper`: the N3 mapper over a chain of submaps (`submaps.enabled`; `jaxmap.n3.submaps`).
+"""`SubmapMapper`: the N3 map over a chain of submaps (`submaps.enabled`; `jaxmap.n3.submaps`).
 
     m = SubmapMapper(cfg, directory="runs/x/submaps")   # or load_map("runs/x/checkpoint") of such a run
     m.add_frame(points_s, pose)            # maps into the submap the pose falls in (a new one, or an old one again)
@@ -6,15 +6,21 @@
     sdf, valid = m.sdf(points_w)           # blended over the submaps that hold the points
     mesh = m.mesh()                        # streamed through the mesher one submap at a time
 
-It is an `N3Mapper` whose state is the submap being mapped; before a frame whose sensor has left that
-submap (`Submaps.switch_for`), the frames in flight are finished, the submap is parked (written to disk
-in the background, kept in memory while `submaps.resident` allows) and the next one takes its place in
-the frame pipeline (same capacities: the compiled frame program is reused).
+It is a map over a `Submaps` store (the index, the submaps held in memory, their files) and one
+`N3Mapper`, `grid`, that maps the submap being mapped: before a frame whose sensor has left that
+submap (`Submaps.switch_for`, or the route the frame's batch was made on: `routing.Route`), the grid
+finishes the frames in flight and hands its state over (`N3Mapper.detach`), the submap is parked
+(written to disk in the background, kept in memory while `submaps.resident` allows) and the grid maps
+on from the next one (`N3Mapper.attach`: same capacities, the compiled frame program is reused). The
+grid counts the frames of its submap; this map counts the whole map's and adds to each frame's record
+where it went ("submap", "submap_frame").
 """
 from __future__ import annotations
 
+import collections
 import os
 import tempfile
+import time
 
 import jax
 import numpy as np
@@ -25,43 +31,97 @@ from jaxmap.n3.mapper import N3Mapper, empty_state
 from jaxmap.n3.submaps import NEW, Submaps
 
 
-class SubmapMapper(N3Mapper):
-    """An N3Mapper over a chain of submaps. directory: where the submaps are written (a run's
-    `submaps/`; default a new temporary folder); index: a checkpoint's submap index (`load_map`)."""
-
-    chains_submaps = True
+class SubmapMapper:
+    """An N3 map over a chain of submaps (the `Mapper` of `jaxmap.frame_loop`, as `N3Mapper` is). cfg, state,
+    timings, start, first_scan, first_batch: as `N3Mapper`'s (state: the active submap's); directory: where
+    the submaps are written (a run's `submaps/`; default a new temporary folder); index: a checkpoint's
+    submap index (`load_map`)."""
 
     def __init__(self, cfg=None, state=None, timings=None, *, start=None, first_scan=None, first_batch=None,
                  directory: str | None = None, index: dict | None = None):
-        self._subs = None
-        super().__init__(cfg, state, timings, start=start, first_scan=first_scan, first_batch=first_batch)
-        self._local = self.frames          # frames submitted to the active submap's state (its own count)
-        self._local_of: dict[int, int] = {}  # frame (the whole map's count) -> its count in its submap
+        # (the whole map's frame, its submap) of the frames submitted whose records are not back yet
+        self._in_flight: collections.deque[tuple[int, int]] = collections.deque()
+        self.grid = N3Mapper(cfg, state, timings, start=start, first_scan=first_scan, first_batch=first_batch,
+                             in_chain=True, on_record=self._annotate)
         self._subs = Submaps(self.static, self.cfg, directory or tempfile.mkdtemp(prefix="jaxmap-submaps-"),
-                             live=lambda: self.state)
+                             live=lambda: self.grid.state)
+        self.frames = self.grid.frames  # frames submitted to the whole map (the grid counts its submap's)
         if index is not None:
             self._subs.restore(index)
-            # the frames of the whole map (the state's count is the active submap's own)
             self.frames = int(index.get("frames", sum(len(i.frames) for i in self._subs.infos)))
         elif self.frames == 0 and self.start.anchor is not None:
             self._subs.active = self._subs.start(self.start.anchor)
 
+    # ---- what the grid holds -----------------------------------------------------------------------
     @property
     def submaps(self) -> Submaps:
         return self._subs
+
+    @property
+    def cfg(self):
+        return self.grid.cfg
+
+    @property
+    def static(self) -> core.N3Static:
+        return self.grid.static
+
+    @property
+    def start(self) -> scan.MapStart:
+        return self.grid.start
+
+    @property
+    def state(self) -> core.N3State:
+        """The state of the submap being mapped (after every frame added)."""
+        return self.grid.state
+
+    @property
+    def timings(self) -> list:
+        """Every frame's record (`N3Record` with "submap", "submap_frame", "submaps", ...), in order."""
+        return self.grid.timings
+
+    @property
+    def bucket(self) -> int:
+        return self.grid.bucket
+
+    @property
+    def origin(self) -> np.ndarray:
+        """[3] float64 world position of the map frame of the submap being mapped."""
+        return self.grid.origin
+
+    def set_iters(self, iters: int) -> None:
+        self.grid.set_iters(iters)
+
+    def frames_held(self, min_frames: int = 10) -> float:
+        """`N3Mapper.frames_held` of the submap being mapped."""
+        return self.grid.frames_held(min_frames)
+
+    def timing_summary(self, skip_first: int = 1) -> dict:
+        return self.grid.timing_summary(skip_first)
+
+    def live_mesh(self) -> dict:
+        """`attach_viewer` arguments: the live view meshes the submap being mapped."""
+        return self.grid.live_mesh()
 
     def uploader(self) -> scan.Uploader:
         """The frame loop's last reading stage for this map (`scan.Uploader`): it routes the frames of a drive
         at known poses to their submaps (`Submaps.route`, handed over: from now on the frames this map is
         given come with their `Place`) and makes each batch in its submap's frame."""
-        return scan.Uploader(self._origin, self.start.device, self.bucket, self._subs.route())
+        return scan.Uploader(self.origin, self.start.device, self.bucket, self._subs.route())
 
-    def _place(self, position_w) -> None:
-        super()._place(position_w)
-        if self._subs is not None:
-            self._subs.static, self._subs.cfg = self.static, self.cfg  # the submaps are written with the layout
-            if not self._subs.infos:
-                self._subs.active = self._subs.start(np.asarray(position_w, np.float64))
+    # ---- mapping -----------------------------------------------------------------------------------
+    def add_frame(self, points_s, pose) -> dict:
+        """`N3Mapper.add_frame` into the submap the pose [4, 4] T_world_sensor falls in."""
+        t0 = time.perf_counter()
+        if self.frames == 0:  # the layout read off the first raw scan (the pose places the first submap)
+            self._begin(points_s, None)
+        prepared, pose = self.start.prepare(points_s, pose, self.frames)
+        return self.add_prepared(prepared, pose, since=t0)
+
+    def add_prepared(self, prepared, pose, *, since: float | None = None, stay: bool = False) -> dict:
+        """`N3Mapper.add_prepared` (`submit_prepared`, then the frame finished)."""
+        self.submit_prepared(prepared, pose, since=since, stay=stay)
+        ((info, kept),) = self.finish()
+        return {**info, "kept": kept}
 
     def submit_prepared(self, prepared, pose, *, since: float | None = None, stay: bool = False) -> tuple[dict, list]:
         """`N3Mapper.submit_prepared` with pose [4, 4] T_world_sensor in the world: mapped into the submap
@@ -69,12 +129,16 @@ class SubmapMapper(N3Mapper):
         submap's frame (a moved submap's, not the world's); where it went also names the submap and the
         frame's number in it ("submap", "submap_frame")."""
         pose = np.asarray(pose, np.float64)
-        if self.frames and not stay:
+        if not self._subs.infos:  # a map made with no first pose: this one places it
+            self._begin(None, pose)
+        elif self.frames and not stay:
             self._enter(pose)
-        local = np.linalg.inv(self._subs.infos[self._subs.active].pose) @ pose if self._subs.infos else pose
-        batch, timed = self._batch_of(prepared, local, since)
-        done = self._submit_here(batch, pose[:3, 3], again=stay, **timed)
-        return {"frame": self.frames - 1, "submap": self._subs.active, "submap_frame": self._local - 1}, done
+        k = self._subs.active
+        self._in_flight.append((self.frames, k))
+        _, done = self.grid.submit_prepared(prepared, np.linalg.inv(self._subs.infos[k].pose) @ pose, since=since)
+        self._subs.record(pose[:3, 3], self.frames, again=stay)
+        self.frames += 1
+        return {"frame": self.frames - 1, "submap": k, "submap_frame": self.grid.frames - 1}, done
 
     def submit(self, batch, *, points: int, prepare_s: float = 0.0, wait_s: float = 0.0, main_s: float = 0.0,
                place=None) -> list:
@@ -85,20 +149,43 @@ class SubmapMapper(N3Mapper):
             raise ValueError("a map of submaps maps batches routed to their submaps: make them with its uploader() "
                              "(or map prepared scans with add_prepared)")
         self._follow(place)
-        self._check_place(place)
+        self.grid.check_place(place)
         if not np.array_equal(self._subs.infos[self._subs.active].pose, np.eye(4)):
             raise ValueError("a batch uploaded in the world frame cannot go into a moved submap: map it with "
                              "add_prepared (which places the pose in the submap's frame)")
-        return self._submit_here(batch, place.position_w, place=place, points=points, prepare_s=prepare_s,
-                                 wait_s=wait_s, main_s=main_s)
+        self._in_flight.append((self.frames, self._subs.active))
+        done = self.grid.submit(batch, points=points, prepare_s=prepare_s, wait_s=wait_s, main_s=main_s, place=place)
+        self._subs.record(np.asarray(place.position_w, np.float64), self.frames)
+        self.frames += 1
+        return done
 
-    def _submit_here(self, batch, position_w, again: bool = False, **kw) -> list:
-        """`N3Mapper.submit` into the active submap of a frame whose sensor is at world position_w [3] (again:
-        a frame of it added again, not a step further along its path)."""
-        self._subs.record(np.asarray(position_w, np.float64), self.frames, again=again)
-        self._local_of[self.frames] = self._local
-        self._local += 1
-        return super().submit(batch, **kw)
+    def finish(self) -> list:
+        """Wait for every frame submitted; (record, kept) of those not returned yet, oldest first."""
+        return self.grid.finish()
+
+    def forget_frames(self, frames) -> int:
+        """`N3Mapper.forget_frames` in the active submap: frames are counted in it (records'
+        `submap_frame`); the other submaps keep no pair store to remove pairs from."""
+        return self.grid.forget_frames(frames)
+
+    def release(self) -> None:
+        """`N3Mapper.release`, and every submap held in memory."""
+        self.grid.release()
+        self._subs.release()
+
+    def _annotate(self, record: dict) -> None:
+        """Where a frame whose record came back went (the grid numbered it in its submap)."""
+        frame, k = self._in_flight.popleft()
+        record.update({"frame": frame, "submap": k, "submap_frame": record["frame"], "submaps": len(self._subs.infos),
+                       "submaps_resident": self._subs.resident(), "submaps_on_disk": self._subs.on_disk(),
+                       "device_mb": _device_mb()})
+
+    def _begin(self, points_s, pose) -> None:
+        """`N3Mapper.begin`, and the first submap anchored where the map frame is placed."""
+        self.grid.begin(points_s, pose)
+        self._subs.static, self._subs.cfg = self.static, self.cfg  # the submaps are written with the layout
+        if not self._subs.infos and self.start.anchor is not None:
+            self._subs.active = self._subs.start(self.start.anchor)
 
     def _follow(self, place) -> None:
         """Take up the submap a routed frame goes to (`Route` numbers a new one as the next id)."""
@@ -106,7 +193,9 @@ class SubmapMapper(N3Mapper):
         if k == self._subs.active:
             return
         if n == 0 and k == 0:  # a map made with no first pose: the first frame places it
-            self._place(np.asarray(place.position_w, np.float64))
+            at = np.eye(4)
+            at[:3, 3] = place.position_w
+            self._begin(None, at)
             return
         if not 0 <= k <= n:
             raise ValueError(f"a frame routed to submap {k} of a map of {n}: its route did not start from this map")
@@ -119,12 +208,10 @@ class SubmapMapper(N3Mapper):
             self._switch(target, pose[:3, 3])
 
     def _switch(self, target: int, position_w: np.ndarray) -> None:
-        """Finish the frames in flight, park the active submap and map on in `target` (an id, or NEW: a new
-        one anchored at the sensor's world position_w [3])."""
-        self._settle()
-        old_id, old = self._subs.active, self._pipe.state
+        """Park the active submap and map on in `target` (an id, or NEW: a new one anchored at the sensor's
+        world position_w [3])."""
+        old_id, old = self._subs.active, self.grid.detach()
         caps = core.Capacities.of(old)
-        self._pipe.state = None
         self._subs.park(old_id, old)
         del old  # (its pair store goes now, the rest once written: before the next submap is allocated)
         if target == NEW:
@@ -136,41 +223,27 @@ class SubmapMapper(N3Mapper):
             new = new.replace(key=jax.random.fold_in(new.key, len(self._subs.infos)))
             new = core.set_origin(self.static, new, position_w)
             target = self._subs.start(position_w)
-            self._local = 0
         else:
             new = self._subs.take(target, caps.store_blocks)
-            self._local = int(new.frame)
         self._subs.active = target
-        self._pipe.state = new
-        self._origin = core.origin_world(self.static, new)
+        self.grid.attach(new)
         hostmem.trim()
-
-    def _collect(self) -> None:
-        n = len(self.timings)
-        super()._collect()
-        if self._subs is None:
-            return
-        for r in self.timings[n:]:
-            r.update({"submap": self._subs.active, "submap_frame": self._local_of.pop(r["frame"], None),
-                      "submaps": len(self._subs.infos),
-                      "submaps_resident": self._subs.resident(), "submaps_on_disk": self._subs.on_disk(),
-                      "device_mb": _device_mb()})
 
     # ---- reading the whole map ---------------------------------------------------------------------
     def sdf(self, points_w):
         """Blended signed distance at world points [N, 3] -> (sdf [N] float32, valid [N] bool)."""
-        self._settle()
+        self.grid.settle()
         return self._subs.query_world(points_w)
 
     def sdf_grad(self, points_w):
         """(sdf [N], d sdf / d x [N, 3]) at world points [N, 3], blended."""
-        self._settle()
+        self.grid.settle()
         s, g, _ = self._subs.query_world(points_w, grad=True)
         return s, g
 
     def mesh(self, res: float | None = None, min_component_faces: int | None = None):
         mcf = self.cfg.mesh.min_component_faces if min_component_faces is None else min_component_faces
-        self._settle()
+        self.grid.settle()
         return self._subs.mesh(float(res or self.cfg.mesh.resolution_m), mcf)
 
     def tracking_map(self, position_w, min_frames: int = 1):
@@ -191,14 +264,14 @@ class SubmapMapper(N3Mapper):
         """Place each submap k of `poses` {k: T_world_local [4, 4]} there, as a rigid body (a loop
         correction of `jaxmap slam`); the frames mapped next into the active one go in at their pose
         in its new frame."""
-        self._settle()
+        self.grid.settle()
         for k, T in poses.items():
             self._subs.move(int(k), T)
 
     def voxel_coords(self, points_s, pose) -> np.ndarray:
         """[M, 3] int64 world leaf voxels (origin 0: one lattice for every submap) of sensor-frame points."""
-        o = np.round(self._origin / self.static.leaf).astype(np.int64)
-        return super().voxel_coords(points_s, pose) + o
+        o = np.round(self.origin / self.static.leaf).astype(np.int64)
+        return self.grid.voxel_coords(points_s, pose) + o
 
     def void_voxels(self) -> np.ndarray:
         """[K, 3] int32 world leaf voxels (origin 0) that are void in any submap."""
@@ -213,20 +286,6 @@ class SubmapMapper(N3Mapper):
             void = np.asarray(void_of(st.evidence, self.static.void_frames)[:n])
             out.append(np.asarray(st.voxel_coord[:n])[void] + np.asarray(st.origin_vox))
         return np.concatenate(out).astype(np.int32) if out else np.zeros((0, 3), np.int32)
-
-    # (the live view, `live_mesh`, meshes the submap being mapped)
-
-    def forget_frames(self, frames) -> int:
-        """`N3Mapper.forget_frames` in the active submap: frames are counted in it (records'
-        `submap_frame`); the other submaps keep no pair store to remove pairs from."""
-        return self._forget(frames, self._local)
-
-    def release(self) -> None:
-        super().release()
-        self._subs.release()
-
-    def reset(self) -> None:
-        raise NotImplementedError("a map of submaps is not reset (jaxmap slam n3_loop rebuild maps one grid)")
 
     # ---- checkpoints -------------------------------------------------------------------------------
     def save(self, path: str, background: bool = False, copy: bool = True) -> None:
@@ -245,7 +304,7 @@ class SubmapMapper(N3Mapper):
             save_state(path, self.cfg, self.state, self.timings, extra=extra, step=self.frames)
 
 
-def new_map(start, directory: str | None = None, **kw) -> N3Mapper:
+def new_map(start, directory: str | None = None, **kw) -> N3Mapper | SubmapMapper:
     """The empty map of a `scan.MapStart`: one grid (N3Mapper), or with submaps.enabled a SubmapMapper writing
     its submaps to `directory` (a run's `submaps/`; None: a new temporary folder). kw: first_batch."""
     if start.cfg.submaps.enabled:
@@ -253,7 +312,7 @@ def new_map(start, directory: str | None = None, **kw) -> N3Mapper:
     return N3Mapper(start=start, **kw)
 
 
-def load_map(path: str) -> N3Mapper:
+def load_map(path: str) -> N3Mapper | SubmapMapper:
     """The map of checkpoint directory `path` (or one checkpoint `path/<step>`): an N3Mapper, or a
     SubmapMapper where the checkpoint holds a map of submaps (its submaps read from the run's submaps/)."""
     from jaxmap.n3.checkpoint import load_state_meta

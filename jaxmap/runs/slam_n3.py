@@ -37,7 +37,7 @@ import pickle
 
 import numpy as np
 
-from jaxmap.config import MapConfig, SlamConfig, load_config, validate
+from jaxmap.config import ConfigError, MapConfig, SlamConfig, load_config, validate
 from jaxmap.errors import CheckpointError, JaxmapError
 from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, run_frames
 from jaxmap.records import medians
@@ -47,6 +47,7 @@ from jaxmap.n3.following import FollowingMap, FollowRule
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart, PreparedScan
 from jaxmap.n3.scan_store import ScanStore
+from jaxmap.n3.submap_mapper import SubmapMapper, load_map, new_map
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
 
@@ -283,7 +284,7 @@ def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = Tru
             "checkpoint_s": float(sum(r.get("checkpoint_s", 0.0) for r in step.records))}
 
 
-def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
+def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper | SubmapMapper:
     """The run's N3 map (config in out_dir/n3_config.yaml's place: the caller saves it): one grid, or with
     `n3_loop: submaps` a `SubmapMapper` (submaps of n3_submap_m, each pass its own, in out_dir/submaps)."""
     mcfg = n3_map_config(cfg, out_dir)
@@ -295,15 +296,15 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper:
     first = seq.frame(0) if len(seq) else None
     first_scan = (first.points, first.pose) if first is not None else None
     if cfg.n3_loop == "submaps":
-        from jaxmap.n3.submap_mapper import SubmapMapper
-
         # two resident: a new submap's first frames are tracked against the one left (not read back from disk)
         sub = dataclasses.replace(mcfg.submaps, enabled=True, length_m=cfg.n3_submap_m, revisit=False,
                                   resident=max(mcfg.submaps.resident, 2))
         mcfg = dataclasses.replace(mcfg, submaps=sub)
         validate(mcfg, cfg.n3_config)
-        return SubmapMapper(mcfg, first_scan=first_scan, directory=os.path.join(out_dir, "submaps"))
-    return N3Mapper(mcfg, first_scan=first_scan)
+    elif mcfg.submaps.enabled:
+        raise ConfigError(f"{cfg.n3_config}: submaps.enabled=true: jaxmap slam maps in submaps with "
+                          f"n3_loop=submaps (now {cfg.n3_loop}); set submaps.enabled=false or n3_loop=submaps")
+    return new_map(MapStart.of(mcfg, *(first_scan or ())), os.path.join(out_dir, "submaps"), first_scan=first_scan)
 
 
 STATE_FILE = "slam_state.pkl"
@@ -338,8 +339,6 @@ class _StateUnpickler(pickle.Unpickler):
 def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
     """(map, step) of the SLAM checkpoint in out_dir (`save_slam`); CheckpointError naming what is missing
     or does not match."""
-    from jaxmap.n3.submap_mapper import load_map
-
     path = os.path.join(out_dir, STATE_FILE)
     if not os.path.isfile(path):
         raise CheckpointError(f"{path}: missing, so the run cannot be continued (it stopped before its first "
