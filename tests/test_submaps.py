@@ -202,6 +202,28 @@ def test_groups_meshed_apart_weld_into_the_one_mesh():
     np.testing.assert_allclose(np.sort(two.vertices, axis=0), np.sort(one.vertices, axis=0), atol=1e-6)
 
 
+def test_cells_far_from_seams_read_their_submap_alone_and_mesh_as_the_blend_does(tmp_path, monkeypatch):
+    """The mesh reads a submap's own cells far from every seam from that submap alone (`_owner`'s alone:
+    the other paths farther than blend_m + the cell's diagonal); the mesh is the one the blended query
+    makes everywhere, vertex for vertex. A margin without the diagonal, or cells near a seam read alone,
+    leave the blend out where it weighs and move the vertices there."""
+    m = _mapped(tmp_path, n=24)
+    subs = m.submaps
+    assert len(subs.infos) >= 3
+    read = [subs._owner(subs._cells_world(k, subs.limit + 4)) for k in range(len(subs.infos))]
+    alone = np.concatenate([a & (o == k) for k, (o, a) in enumerate(read)])
+    assert 0.2 < alone.mean() < 0.8  # both kinds of cells (8 m submaps, 3 m blend, 10 m range)
+    fast = m.mesh()
+    monkeypatch.setattr(sm.Submaps, "_owner", lambda self, c: (real_owner(self, c)[0], np.zeros(len(c), bool)))
+    blended = m.mesh()
+    assert len(fast.faces) == len(blended.faces) > 1000
+    key = lambda mesh: np.sort(np.round(mesh.vertices[mesh.faces].reshape(-1, 9) * 1e4).astype(np.int64), axis=0)  # noqa: E731
+    np.testing.assert_array_equal(key(fast), key(blended))
+
+
+real_owner = sm.Submaps._owner
+
+
 def test_submaps_are_refused_where_they_would_be_ignored():
     with pytest.raises(ConfigError, match="submaps"):
         load_config("configs/city.yaml", ["submaps.enabled=true", "window.mode=replay"])

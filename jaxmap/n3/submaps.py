@@ -281,11 +281,12 @@ class Submaps:
             tree = self._trees[key] = cKDTree(info.world_path())
         return tree.query(points_w, workers=-1)[0]
 
-    def query_world(self, points_w, grad: bool = False, limit: int | None = None):
+    def query_world(self, points_w, grad: bool = False, limit: int | None = None, known: tuple | None = None):
         """The blended SDF at world points [N, 3] -> (sdf [N] float32, valid [N] bool), or with `grad`
         (sdf [N], d sdf / d x [N, 3], valid [N]). A point is read from the submaps whose box holds it
         and whose path is within blend_m of the nearest such path; where none of those is valid, from
-        the others that hold it; the valid readings are blended by `blend_weights`."""
+        the others that hold it; the valid readings are blended by `blend_weights`. known: (k, sdf [N],
+        valid [N]) submap k's reading at the points, made already (not with `grad`)."""
         pts = np.asarray(points_w, np.float64).reshape(-1, 3)
         n = len(pts)
         band = float(self.cfg.submaps.blend_m)
@@ -315,7 +316,9 @@ class Submaps:
             read = ~near & ~np.any(valid, axis=1, keepdims=True) if second else near
             for j, k in enumerate(cands):
                 idx = np.nonzero(read[:, j] & np.isfinite(dist[:, j]))[0]
-                if len(idx):
+                if len(idx) and known is not None and k == known[0]:
+                    sdf[idx, j], valid[idx, j] = known[1][idx], known[2][idx]
+                elif len(idx):
                     self._read_submap(k, pts[idx], idx, j, sdf, valid, g, limit)
             if valid.any(axis=1).all():
                 break
@@ -345,35 +348,60 @@ class Submaps:
         lattice of `res` (which must divide the leaf voxel size). Each lattice cell is meshed with the
         cells of the submap whose sensor path is nearest to it, one submap after another, each while it and
         its neighbours are in memory (at most resident + 4 submaps at once, `resident` again after); the
-        pieces are welded."""
+        pieces are welded. A submap's own cells far from every seam (`_alone`) are read from it alone,
+        the rest through the blended query: the same values, without the other submaps' path distances and
+        the blend where the blend has one submap to read."""
         from jaxmap.mesh import extract_mesh_groups
 
         static = self.static
         check_mesh_resolution(static.leaf, res)
         limit = self.limit + 4  # a submap and its neighbours (query views: ~100 MB each on the city)
-        groups: dict[int, list] = collections.defaultdict(list)
+        groups: dict[tuple[int, bool], list] = collections.defaultdict(list)
         for k in range(len(self.infos)):
             if self.bounds(k) is None:
                 continue
             cells = self._cells_world(k, limit)
             if len(cells) == 0:
                 continue
-            centres = (cells + 0.5) * static.leaf
-            owner = self._owner(centres)
-            for o in np.unique(owner):
-                groups[int(o)].append(cells[owner == o])
-        order = sorted(groups)
-        cell_groups = [np.unique(np.concatenate(groups[o]), axis=0) for o in order]
+            owner, alone = self._owner(cells)
+            alone &= (owner == k) & np.array_equal(self.infos[k].pose, np.eye(4))
+            groups[(k, True)].append(cells[alone])
+            for o in np.unique(owner[~alone]):
+                groups[(int(o), False)].append(cells[~alone & (owner == o)])
+        # the submaps in order, each's own cells first; a cell is meshed once: one its owner reads alone is
+        # taken out of the owner's blended group (another submap's set brought it there too)
+        keys = sorted(groups, key=lambda g: (g[0], not g[1]))
+        cell_groups = {g: np.unique(np.concatenate(groups[g]), axis=0) for g in keys}
+        for k, alone in keys:
+            if alone and (k, False) in cell_groups:
+                cell_groups[(k, False)] = _rows_not_in(cell_groups[(k, False)], cell_groups[(k, True)])
+        cell_groups = [cell_groups[g] for g in keys]
         del groups
 
-        def sdf_fn_of(_g):
-            return lambda p: self.query_world(p, limit=limit)
+        def sdf_fn_of(g):
+            k, alone = keys[g]
+            if not alone:
+                return lambda p: self.query_world(p, limit=limit)
+            return lambda p: self._read_alone(k, p, limit)
 
         try:
             return extract_mesh_groups(sdf_fn_of, cell_groups, static.leaf, res,
                                        min_component_faces=min_component_faces)
         finally:  # back to `submaps.resident` once meshed (what the end of a run holds while it is evaluated)
             self._fit(self.limit - self._live_held())
+
+    def _read_alone(self, k: int, points_w, limit: int):
+        """`query_world` at world points [N, 3] that only submap k (unmoved) reads: its reading where valid and
+        in its box, the blended query's (which falls back on the other submaps) elsewhere."""
+        pts = np.asarray(points_w, np.float64).reshape(-1, 3)
+        sdf, valid = query_world(self.static, self.state(k, limit), pts, small_tail=True)
+        sdf, valid = np.array(sdf, np.float32), np.array(valid, bool)
+        lo, hi = self.bounds(k)  # (a corner on the box's face, rounded to float32, may fall just outside it)
+        valid &= np.all((pts >= lo) & (pts <= hi), axis=1)
+        if not valid.all():  # (k's reading handed over: the blend's first pass reads no other submap there)
+            bad = ~valid
+            sdf[bad], valid[bad] = self.query_world(pts[bad], limit=limit, known=(k, sdf[bad], valid[bad]))
+        return sdf, valid
 
     def _cells_world(self, k: int, limit: int) -> np.ndarray:
         """[M, 3] int64 world-lattice leaf cells that submap k meshes (its non-void leaves, with their
@@ -391,20 +419,45 @@ class Submaps:
         centres = to_world(info.pose, (cells + 0.5) * static.leaf)
         return np.unique(np.floor(centres / static.leaf).astype(np.int64), axis=0)
 
-    def _owner(self, points_w: np.ndarray) -> np.ndarray:
-        """[N] int: the submap whose sensor path is nearest to each world point, among those whose box
-        holds it (a function of the point alone, so a cell that several submaps hold is meshed once)."""
-        best = np.full(len(points_w), np.inf)
-        owner = np.full(len(points_w), -1)
+    def _owner(self, cells: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For world-lattice leaf cells [N, 3]: (owner [N] int, the submap whose sensor path is nearest to the
+        cell's centre among those whose box holds it: a function of the cell alone, so a cell that several
+        submaps hold is meshed once; alone [N] bool, every corner of the cell is nearer to the owner's path
+        than to any other submap's by more than blend_m, so the blended query reads the owner alone there).
+        A path distance moves by at most the half-diagonal h between the centre and a corner: alone holds
+        when, at the centre, every other submap whose box grown by h holds it is farther than the owner
+        by more than blend_m + 2 h."""
+        centres = (cells + 0.5) * self.static.leaf
+        h = 0.5 * np.sqrt(3.0) * self.static.leaf + 1e-3  # (+ the corners' rounding to float32, with room)
+        best = np.full(len(centres), np.inf)
+        owner = np.full(len(centres), -1)
+        near1, near2 = np.full(len(centres), np.inf), np.full(len(centres), np.inf)  # two nearest, grown boxes
+        near_id = np.full(len(centres), -1)
         for k in range(len(self.infos)):
             b = self.infos[k].world_bounds() if k != self.active else self.bounds(k)
             if b is None:
                 continue
-            m = np.nonzero(np.all((points_w >= b[0]) & (points_w <= b[1]), axis=1))[0]
+            m = np.nonzero(np.all((centres >= b[0] - h) & (centres <= b[1] + h), axis=1))[0]
             if len(m) == 0:
                 continue
-            d = self.path_distance(k, points_w[m])
-            better = d < best[m]
+            d = self.path_distance(k, centres[m])
+            inside = np.all((centres[m] >= b[0]) & (centres[m] <= b[1]), axis=1)
+            better = inside & (d < best[m])
             best[m[better]] = d[better]
             owner[m[better]] = k
-        return owner
+            first = d < near1[m]
+            near2[m] = np.where(first, near1[m], np.minimum(near2[m], d))
+            near_id[m[first]] = k
+            near1[m] = np.where(first, d, near1[m])
+        alone = (near_id == owner) & (near2 - near1 > float(self.cfg.submaps.blend_m) + 2 * h)
+        return owner, alone
+
+
+def _rows_not_in(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rows of int64 a [M, 3] that are not rows of b [K, 3]."""
+    if len(a) == 0 or len(b) == 0:
+        return a
+    lo = np.minimum(a.min(0), b.min(0))
+    span = np.maximum(a.max(0), b.max(0)) - lo + 1
+    key = lambda c: ((c[:, 0] - lo[0]) * span[1] + (c[:, 1] - lo[1])) * span[2] + (c[:, 2] - lo[2])  # noqa: E731
+    return a[~np.isin(key(a), key(b))]
