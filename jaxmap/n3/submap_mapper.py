@@ -28,7 +28,8 @@ import numpy as np
 from jaxmap import hostmem
 from jaxmap.n3 import core, scan
 from jaxmap.n3.mapper import N3Mapper, empty_state
-from jaxmap.n3.submaps import NEW, Submaps
+from jaxmap.n3.routing import NEW
+from jaxmap.n3.submaps import Submaps
 
 
 class SubmapMapper:

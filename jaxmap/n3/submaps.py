@@ -38,11 +38,10 @@ import numpy as np
 
 from jaxmap import hostmem
 from jaxmap.n3 import checkpoint as n3checkpoint, window
-from jaxmap.n3.routing import NEW, Route, next_submap  # noqa: F401  (NEW: re-exported)
 from jaxmap.n3.query import check_mesh_resolution, mesh_cells, query_view, query_world
+from jaxmap.n3.routing import Route, next_submap
 from jaxmap.n3.state import N3State, N3Static, origin_world
 from jaxmap.n3.evidence import void as void_of
-
 
 
 @dataclasses.dataclass
@@ -348,9 +347,9 @@ class Submaps:
         lattice of `res` (which must divide the leaf voxel size). Each lattice cell is meshed with the
         cells of the submap whose sensor path is nearest to it, one submap after another, each while it and
         its neighbours are in memory (at most resident + 4 submaps at once, `resident` again after); the
-        pieces are welded. A submap's own cells far from every seam (`_alone`) are read from it alone,
-        the rest through the blended query: the same values, without the other submaps' path distances and
-        the blend where the blend has one submap to read."""
+        pieces are welded. A submap's own cells far from every seam (`_owner`'s alone) are read from it
+        alone (`_read_alone`), the rest through the blended query: the same values, without the other
+        submaps' path distances and the blend where the blend has one submap to read."""
         from jaxmap.mesh import extract_mesh_groups
 
         static = self.static
