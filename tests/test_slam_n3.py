@@ -211,7 +211,7 @@ def test_a_slam_state_saved_before_the_step_moved_to_the_run_layer_still_loads()
     import io
     import pickle
 
-    from jaxmap.runs import slam_n3
+    from jaxmap.runs import slam_n3, slam_step
 
     step = slam_n3.N3SlamStep.__new__(slam_n3.N3SlamStep)
     step.__dict__.update(counter=[3, 4], pending=[1])
@@ -219,6 +219,6 @@ def test_a_slam_state_saved_before_the_step_moved_to_the_run_layer_still_loads()
     assert b"jaxmap.slam.n3slam" in old
     with pytest.raises(ModuleNotFoundError):
         pickle.loads(old)
-    back = slam_n3._StateUnpickler(io.BytesIO(old)).load()["step"]
+    back = slam_step._StateUnpickler(io.BytesIO(old)).load()["step"]
     # and its frames, the step's own then, are its map's now (`FollowingMap`)
     assert type(back) is slam_n3.N3SlamStep and back.map.counter == [3, 4] and back.map.pending == [1]

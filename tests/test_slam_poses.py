@@ -127,7 +127,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
     from jaxmap.geometry import rotation_from_axis_angle
     from jaxmap.imt.mapper import ImtMapper
     from jaxmap.io import open_sequence
-    from jaxmap.runs import slam as run_mod
+    from jaxmap.runs.slam_imt import ImtSlamStep
     from jaxmap.slam.frontend import FrameResult
     from jaxmap.config import SlamConfig
 
@@ -144,7 +144,7 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
             self.n, self.loops = 0, []
             self.odometry = type("O", (), {"velocity": np.eye(4)})()
 
-        def add_frame(self, points_s, scan=None):
+        def add_frame(self, points_s, refine=None, scan=None):
             k, self.n = self.n, self.n + 1
             closing = k == len(gt) - 1
             poses = gt[:k + 1] if closing else drift[:k + 1]
@@ -154,11 +154,15 @@ def test_the_map_is_remapped_at_a_loop_closure(small_room, tmp_path, monkeypatch
         def trajectory(self):
             return gt[:self.n]
 
-    monkeypatch.setattr("jaxmap.runs.slam.FrontEnd", ScriptedFrontEnd)
+    monkeypatch.setattr("jaxmap.runs.slam_imt.FrontEnd", ScriptedFrontEnd)
     cfg = SlamConfig(data=DataConfig(path=str(small_room), every_frame=1, end_frame=len(gt)), mesh_at_loops=False,
                      output=str(tmp_path / "run"))
     mapper = ImtMapper(cfg.imt())
-    out = run_mod.run_frontend(cfg, open_sequence(str(small_room), end_frame=len(gt)), str(tmp_path), mapper, False)
+    step = ImtSlamStep(cfg, gt[0])
+    step.attach(mapper, total=len(gt))
+    for i in range(len(gt)):
+        step.submit(step.load_frame(seq, i))
+    out = step.results(seq)
     assert len(out["loops"]) == 1 and out["loops"][0]["keyframes_moved"] == len(gt) - 2   # 0 never drifted, 5 not yet
     ref, drifted = ImtMapper(cfg.imt()), ImtMapper(cfg.imt())
     for i in range(len(gt)):

@@ -12,7 +12,8 @@ from jaxmap.errors import DataError
 from jaxmap.geometry import make_pose, rotation_from_axis_angle
 from jaxmap.io import open_sequence
 from jaxmap.config import SlamConfig
-from jaxmap.runs.slam import run_slam, snapshot_files
+from jaxmap.runs.slam import run_slam
+from jaxmap.runs.slam_imt import snapshot_files
 from jaxmap.slam.trajectory import write_kitti, write_tum
 
 
@@ -89,3 +90,52 @@ def test_slam_front_end_drives_the_map_on_a_dense_room_stretch(tmp_path):
     assert json.loads((tmp_path / "run" / "metrics.json").read_text()) == out["metrics"]
     rows = [ln for ln in (tmp_path / "run" / "trajectory_tum.txt").read_text().splitlines() if not ln.startswith("#")]
     assert len(rows) == out["frames"] == 8
+
+
+def test_a_latent_map_slam_run_stopped_by_ctrl_c_resumes_to_the_run_without_the_stop(small_room, tmp_path,
+                                                                                      monkeypatch, capsys):
+    """`jaxmap slam` with the latent map (map_kind imt, ICP front end) saves and resumes as the N3 map's
+    runs do (one save, `save_slam`): saved every 3 frames, stopped by SIGINT after frame 4 of 10 and
+    `--resume`d, it ends with the trajectory (to 1e-9 m) and the map (keyframe poses, and the SDF at points
+    of the room to 1e-5 m) of the run never stopped. Without the front end's state the resumed odometry
+    starts from the first pose again (metres off); without the map's, the first keyframes are missing."""
+    import json
+    import os
+    import signal
+
+    from jaxmap.cli import main
+    from jaxmap.imt.mapper import ImtMapper
+    from jaxmap.runs.slam_imt import ImtSlamStep
+
+    base = ["slam", "room_slam", "--data", str(small_room), "--no-progress", "--no-mesh",
+            "--set", "data.every_frame=1", "--set", "preprocess.vox_down_m=0.04", "--set", "checkpoint_every=3"]
+    ref, cut = tmp_path / "ref", tmp_path / "cut"
+    assert main([*base, "--out", str(ref)]) == 0
+    submit = ImtSlamStep.submit
+
+    def stop_after_4(self, frame):
+        out = submit(self, frame)
+        if frame.position == 4:
+            os.kill(os.getpid(), signal.SIGINT)
+        return out
+
+    monkeypatch.setattr(ImtSlamStep, "submit", stop_after_4)
+    assert main([*base, "--out", str(cut)]) == 130
+    assert f"jaxmap slam --resume {cut}" in capsys.readouterr().err
+    monkeypatch.setattr(ImtSlamStep, "submit", submit)
+    assert main(["slam", "--resume", str(cut), "--no-progress", "--no-mesh"]) == 0
+    a, b = (np.loadtxt(r / "trajectory_kitti.txt") for r in (ref, cut))
+    assert a.shape == b.shape == (10, 12)
+    np.testing.assert_allclose(b, a, atol=1e-9)
+    ma, mb = (ImtMapper.load(str(r / "checkpoint")) for r in (ref, cut))
+    assert len(ma.store) == len(mb.store) == 10
+    np.testing.assert_allclose(mb.store.poses(), ma.store.poses(), atol=1e-9)
+    seq = open_sequence(str(small_room))
+    q = np.concatenate([seq.frame(i).points @ a[i].reshape(3, 4)[:, :3].T + a[i].reshape(3, 4)[:, 3]
+                        for i in range(0, 10, 3)])[::40]
+    (sa, _, va), (sb, _, vb) = ma.sdf(q), mb.sdf(q)
+    np.testing.assert_array_equal(va, vb)
+    assert va.mean() > 0.5
+    np.testing.assert_allclose(sb[vb], sa[va], atol=1e-5)
+    ja, jb = (json.loads((r / "slam.json").read_text()) for r in (ref, cut))
+    assert ja["frames"] == jb["frames"] == 10 and ja["keyframes"] == jb["keyframes"] == 10

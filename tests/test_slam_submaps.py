@@ -187,7 +187,8 @@ def test_slam_killed_by_sigkill_resumes_from_its_last_checkpoint(small_noisy_cit
     import time
 
     from jaxmap.cli import main
-    from jaxmap.runs.slam_n3 import SCANS_DIR, STATE_FILE
+    from jaxmap.runs.slam_n3 import SCANS_DIR
+    from jaxmap.runs.slam_step import STATE_FILE
 
     sets = [f"--set={s}" for s in ("n3.train.iters=10", "n3.train.nv=256", "data.end_frame=14", "checkpoint_every=4")]
     base = ["slam", "city_slam", "--data", str(small_noisy_city), "--no-progress", "--no-mesh", *sets]

@@ -232,7 +232,7 @@ class SlamConfig:
                                       # mesh/eval (`jaxmap slam --set n3.train.iters=20` appends one)
     n3_submap_m: float = 30.0         # n3_loop submaps: a new submap once the sensor has driven this far in the
                                       # current one (the N3 map's submaps.length_m, with submaps.revisit false)
-    checkpoint_every: int = 50        # n3: save the run (map, front end, scans) every this many frames, so that a
+    checkpoint_every: int = 50        # save the run (map, front end, scans) every this many frames, so that a
                                       # crash or kill -9 loses at most these (0: only at the end and on Ctrl-C)
     output: str = "runs/slam"           # run directory (`--out` overrides it)
     progress: bool = True             # tqdm progress bar
@@ -250,8 +250,7 @@ class SlamConfig:
                                             "n3_track_young_rotation", "n3_track_points", "n3_track_submap_min_frames",
                                             "n3_loop",
                                             "n3_loop_min_move_m", "n3_loop_readd_iters",
-                                            "n3_loop_readd_per_frame", "n3_submap_m",
-                                            "checkpoint_every")}
+                                            "n3_loop_readd_per_frame", "n3_submap_m")}
         if not self.n3_config:
             out["n3_set"] = "n3_set sets keys of n3_config's N3 map, and this run has none (n3_config is empty)"
         return out

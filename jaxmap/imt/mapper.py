@@ -85,6 +85,11 @@ class ImtMapper:
     def map(self, m: lm.LatentMap) -> None:
         self.state = core.state_of(m)
 
+    @property
+    def frames(self) -> int:
+        """Frames fused into the map (the keyframes, in a SLAM run)."""
+        return len(self.store)
+
     # -- mapping --
     def preprocess(self, points_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Crop, downsample and normals: [N,3] sensor frame -> (points [M,3], normals [M,3]) sensor frame."""

@@ -298,7 +298,7 @@ class SubmapMapper:
             os.path.abspath(path)))}}
         # numbered by the frames of every submap (the active one's own count restarts at each switch, and a
         # save numbered below the one before it would delete it: the SLAM state names that one until it is
-        # replaced, `jaxmap.runs.slam_n3.save_slam`)
+        # replaced, `jaxmap.runs.slam_step.save_slam`)
         if background:
             save_state_async(path, self.cfg, self.state, self.timings, copy=copy, extra=extra, step=self.frames)
         else:

@@ -22,36 +22,36 @@ Per frame of the sequence (`N3SlamStep`, the `Steps` of `jaxmap.frame_loop.run_f
 The map keeps every frame's preprocessed scan (sensor frame) for step 4, one file a frame in the run's
 slam_scans/ (`ScanStore`: ~1.5 MB a frame, two in memory).
 
-Every `checkpoint_every` frames, a run stopped by Ctrl-C or SIGTERM (between two frames) and a finished
-run save the map (checkpoint/) and then the step's state (slam_state.pkl: the front end with its pose
-graph and KISS-ICP's local map, the per-frame records, the scans' count; it names the map checkpoint
-written with it); `jaxmap slam --resume RUN` goes on from there (`load_slam`) with the trajectory and map
-the run would have made without the stop, also after kill -9 (from the last save).
+`jaxmap.runs.slam.run_slam` drives, saves and resumes this step as it does the latent map's
+(`jaxmap.runs.slam_step`: the map in checkpoint/, the step's state in slam_state.pkl: the front end with
+its pose graph and KISS-ICP's local map, the per-frame records, the scans' count).
 """
 from __future__ import annotations
 
 import dataclasses
 import logging
 import os
-import pickle
 
 import numpy as np
 
-from jaxmap.config import ConfigError, MapConfig, SlamConfig, load_config, validate
-from jaxmap.errors import CheckpointError, JaxmapError
-from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, run_frames
-from jaxmap.records import medians
-from jaxmap.geometry import compose
+from jaxmap.config import ConfigError, MapConfig, SlamConfig, load_config, save_config, validate
+from jaxmap.errors import JaxmapError
 from jaxmap.n3 import scan
+from jaxmap.n3.core import PROGRAMS
 from jaxmap.n3.following import FollowingMap, FollowRule
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart, PreparedScan
 from jaxmap.n3.scan_store import ScanStore
-from jaxmap.n3.submap_mapper import SubmapMapper, load_map, new_map
+from jaxmap.n3.submap_mapper import SubmapMapper, new_map
+from jaxmap.records import medians
+from jaxmap.runs.slam_step import SlamFrame, SlamStep, show_loop
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
 
 log = logging.getLogger("jaxmap")
+
+SCANS_DIR = "slam_scans"
+
 
 def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
     """The N3 map's config: `cfg.n3_config` with `cfg.n3_set`'s overrides, the SLAM run's data selection
@@ -60,18 +60,6 @@ def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
     return load_config(cfg.n3_config, [*cfg.n3_set, f"data.path={d.path}", f"data.kind={d.kind}",
                                        f"data.begin_frame={d.begin_frame}", f"data.end_frame={d.end_frame}",
                                        f"data.every_frame={d.every_frame}", f"output={out_dir}"], schema=MapConfig)
-
-
-@dataclasses.dataclass(frozen=True)
-class SlamFrame(Frame):
-    """A frame of a SLAM loop, its host work done in the prefetch threads: `points` as read (for the
-    front end and the tracker), `prepared` the map's preprocessing of it (N3: (points, normals) sensor
-    frame, and `image` the scan's range image for the map's free-space evidence, None when it is off; the
-    latent map: `ImtMapper.prepare`'s HostScan; None: not made ahead), `odometry_scan` the odometry's
-    (`slam.odometry_common.Scan`: downsampled points and normals at two levels)."""
-
-    prepared: tuple | None = None
-    odometry_scan: object = None
 
 
 def prepare_slam_frame(cfg: SlamConfig, start: MapStart, seq, i: int) -> SlamFrame:
@@ -117,31 +105,18 @@ def default_tracker(cfg: SlamConfig):
     return track
 
 
-def show_loop(viewer, fe: FrontEnd, r) -> None:
-    """After a pose-graph optimisation (front-end result r): the viewer (None: none) redraws the
-    trajectory and marks the loop just closed."""
-    if viewer is None:
-        return
-    viewer.on_trajectory(fe.trajectory())
-    if fe.loops:
-        c, k = fe.loops[-1]
-        viewer.on_loop(r.keyframe_poses[c], r.keyframe_poses[k])
-
-
-class N3SlamStep:
+class N3SlamStep(SlamStep):
     """The frame-loop step of `map_kind: n3` (see the module docstring).
-    track: fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
+    track (`attach`): fn(static, state, points_s, T_init) -> TrackResult, or None (odometry poses only)."""
 
-    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, track=None, viewer=None,
-                 scans: ScanStore | None = None):
-        self.cfg, self.track, self.viewer = cfg, track, viewer
-        self.fe = FrontEnd(cfg.frontend, initial_pose=initial_pose)
+    map_kind = "n3"
+    label = "slam (n3)"
+    _run_only = (*SlamStep._run_only, "last")   # (`last`: a state saved before `total` replaced it)
+
+    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, scans: ScanStore | None = None):
+        super().__init__(cfg, FrontEnd(cfg.frontend, initial_pose=initial_pose))
         self.map = FollowingMap(mapper, FollowRule.of(cfg), scans)   # the map and its frames (step 4)
-        self.last = np.inf                       # the position of the sequence's last frame (run_n3_frontend)
-        self.odometry: list[np.ndarray] = []     # the odometry alone (its own motions chained)
-        self.loops: list[dict] = []
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
-        self.records: list[dict] = []            # per frame: the step's record (timings of each part)
         self._waiting: dict = {}                 # map frame number -> (frame, record, pose): in flight
         self._finished: list = []                # (frame, record, pose) finished, not yet returned to the loop
 
@@ -157,11 +132,13 @@ class N3SlamStep:
     def scans(self) -> ScanStore:
         return self.map.scans
 
-    def __getstate__(self) -> dict:
-        """What a SLAM checkpoint keeps of the step (the map is saved beside it; the tracker and the viewer
-        are the run's, set again on resume)."""
-        kept_out = ("track", "viewer", "_waiting", "_finished")
-        return {k: v for k, v in self.__dict__.items() if k not in kept_out}
+    @property
+    def frames_done(self) -> int:
+        return len(self.scans)
+
+    @staticmethod
+    def progress(record: dict) -> dict:
+        return {"loops": record["loops"], "tracked": record["tracked"]}
 
     def __setstate__(self, state: dict) -> None:
         if "prepared" in state:  # saved before the scans went to disk (their lists in the state itself)
@@ -174,9 +151,20 @@ class N3SlamStep:
                                                        "readds", "pairs_removed") if k in state})
             fm.rule = FollowRule.of(state["cfg"]) if "cfg" in state else FollowRule()
             state["map"] = fm
-        state.pop("mapper", None)
-        self.__dict__.update(state)
+        for k in ("mapper", "last"):
+            state.pop(k, None)
+        super().__setstate__(state)
         self._waiting, self._finished = {}, []   # (a save settles the frames in flight first: `save_slam`)
+
+    def attach(self, mapper, *, viewer=None, out_dir: str | None = None, total: int = 0, track=None) -> None:
+        """`SlamStep.attach`; track None: `default_tracker` when `n3_track` is on."""
+        if track is None and self.cfg.n3_track:
+            track = default_tracker(self.cfg)
+        super().attach(mapper, viewer=viewer, out_dir=out_dir, total=total, track=track)
+
+    def moved_to(self, out_dir: str) -> None:
+        if self.scans.directory is not None:
+            self.scans.directory = os.path.join(out_dir, SCANS_DIR)
 
     def _refine(self, points: np.ndarray):
         """The front end's `refine` for this frame: track against the map (none before the first frame)."""
@@ -195,33 +183,28 @@ class N3SlamStep:
 
         return refine
 
-    def submit(self, frame: SlamFrame) -> list:
-        """The frame loop's `Steps.submit`: the front end (odometry, tracking) on this frame, then its map
-        frame dispatched without waiting for it, so that the next frame's odometry runs while the map
-        trains (its tracking waits for the map: it reads the state this frame makes). Returns the frames
-        whose map frame finished meanwhile, (frame, record, pose) each, oldest first."""
-        try:
-            # tracked with the map's own preprocessed points (cropped to its range, downsampled)
-            pts = frame.prepared[0]
-            if self.cfg.n3_track_max_range_m > 0:
-                pts = pts[np.linalg.norm(pts, axis=1) <= self.cfg.n3_track_max_range_m]
-            r = self.fe.add_frame(frame.points, refine=self._refine(pts), scan=frame.odometry_scan)
-            self.odometry.append(frame.pose.copy() if not self.odometry else compose(self.odometry[-1], r.odometry_rel))
-            record = dict(r.timings, loops=len(self.loops), ok=r.odometry_ok, tracked=r.refined)
-            n = self.map.add(PreparedScan(*frame.prepared, frame.image), r.pose)
-            self._waiting[n] = (frame, record, r.pose)
+    def _submit(self, frame: SlamFrame) -> list:
+        """The front end (odometry, tracking) on this frame, then its map frame dispatched without waiting
+        for it, so that the next frame's odometry runs while the map trains (its tracking waits for the
+        map: it reads the state this frame makes). Returns the frames whose map frame finished meanwhile,
+        (frame, record, pose) each, oldest first."""
+        # tracked with the map's own preprocessed points (cropped to its range, downsampled)
+        pts = frame.prepared[0]
+        if self.cfg.n3_track_max_range_m > 0:
+            pts = pts[np.linalg.norm(pts, axis=1) <= self.cfg.n3_track_max_range_m]
+        r = self.front_end(frame, refine=self._refine(pts))
+        record = dict(r.timings, loops=len(self.loops), ok=r.odometry_ok, tracked=r.refined)
+        n = self.map.add(PreparedScan(*frame.prepared, frame.image), r.pose)
+        self._waiting[n] = (frame, record, r.pose)
+        self._route()
+        if r.optimized:
+            self.loops.append(self.follow_loop(frame.index))
+            record["loop_map_s"] = self.loops[-1]["map_s"]
+            show_loop(self.viewer, self.fe, r)
+        if self.map.pending:  # n3_loop_readd_per_frame a frame; the last frame re-adds those left
+            k = len(self.map.pending) if frame.position >= self.total - 1 else max(1, self.cfg.n3_loop_readd_per_frame)
+            record["readd_s"] = self.map.readd(k, self.fe.trajectory())
             self._route()
-            if r.optimized:
-                self.loops.append(self.follow_loop(frame.index))
-                record["loop_map_s"] = self.loops[-1]["map_s"]
-                show_loop(self.viewer, self.fe, r)
-            if self.map.pending:  # n3_loop_readd_per_frame a frame; the last frame re-adds those left
-                k = len(self.map.pending) if frame.position >= self.last else max(1, self.cfg.n3_loop_readd_per_frame)
-                record["readd_s"] = self.map.readd(k, self.fe.trajectory())
-                self._route()
-        except Exception as e:  # the front end, the tracker or the mapper failed: say where
-            log.error("jaxmap slam: frame %d failed", frame.index, exc_info=e)
-            raise JaxmapError(f"jaxmap slam (map_kind n3) failed at frame {frame.index}: {type(e).__name__}: {e}") from e
         return self._take_finished()
 
     def drain(self) -> list:
@@ -255,33 +238,29 @@ class N3SlamStep:
         self._route()
         return {"frame": frame_index, **record}
 
+    def load_frame(self, seq, i: int) -> SlamFrame:
+        return prepare_slam_frame(self.cfg, self.mapper.start, seq, i)
 
-def run_n3_frontend(cfg: SlamConfig, seq, mapper: N3Mapper, progress: bool = True, viewer=None, track=None,
-                    step: N3SlamStep | None = None, out_dir: str | None = None) -> dict:
-    """The front end, tracking and the online N3 map over the sequence (from the frame after the last of
-    `step`, a resumed run's, else from the start); out_dir: where Ctrl-C and the end save the run
-    (`save_slam`; None: not saved). Returns the trajectory, the odometry alone, per-loop and per-frame
-    tracking records, and the frame loop's `FramesRun`."""
-    if track is None and cfg.n3_track:
-        track = default_tracker(cfg)
-    if step is None:
-        scans = ScanStore(os.path.join(out_dir, SCANS_DIR)) if out_dir is not None else None
-        step = N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, track, viewer, scans=scans)
-    step.mapper, step.track, step.viewer, step.last = mapper, track, viewer, len(seq) - 1
-    start = len(step.scans)
-    load = lambda s, i: prepare_slam_frame(cfg, mapper.start, s, i)  # noqa: E731
-    bar = Progress("slam (n3)", progress, postfix=lambda r: {"loops": r["loops"], "tracked": r["tracked"]})
-    saves = None if out_dir is None else Checkpoints(
-        save=lambda background: save_slam(step, out_dir), path=os.path.join(out_dir, "checkpoint"),
-        every=cfg.checkpoint_every, resume=f"jaxmap slam --resume {out_dir}")
-    loop = run_frames(Prefetcher(seq, start, len(seq), load), step, total=len(seq), start=start, progress=bar,
-                      viewer=viewer, checkpoints=saves)
-    return {"trajectory": step.fe.trajectory(), "odometry": np.asarray(step.odometry), "loops": step.loops,
-            "keyframe_frames": [int(seq.indices[i]) for i in step.fe.kf_frame], "tracking": step.tracks,
-            "loop": loop, "step_medians": medians(step.records, ("odometry_s", "refine_s", "level_s", "map_s", "loop_s")),
-            "readd_s": float(sum(r.get("readd_s", 0.0) for r in step.records)),
-            "readds": step.map.readds, "readd_pairs_removed": step.map.pairs_removed,
-            "checkpoint_s": float(sum(r.get("checkpoint_s", 0.0) for r in step.records))}
+    def summary(self, res: dict) -> dict:
+        """Tracking, the loops' map time and re-adds, the medians of the step's parts."""
+        tracked = [t for t in self.tracks if t.get("tracked")]
+        return {"tracked_frames": len(tracked), "tracked_ok": sum(t["ok"] for t in tracked),
+                "loop_map_s": float(sum(lp["map_s"] for lp in self.loops)),
+                "loop_readd_s": float(sum(r.get("readd_s", 0.0) for r in self.records)),
+                "loop_readds": self.map.readds, "loop_readd_pairs_removed": self.map.pairs_removed,
+                "tracking": self.tracks,
+                "step": medians(self.records, ("odometry_s", "refine_s", "level_s", "map_s", "loop_s"))}
+
+    def compiles_since(self, n: int) -> dict:
+        return PROGRAMS.compiles_since(n)
+
+
+def open_n3_step(cfg: SlamConfig, out_dir: str, seq) -> N3SlamStep:
+    """A new run's step and map (`open_n3_mapper`; the map's resolved config saved as out_dir/n3_config.yaml),
+    its scans kept in out_dir/slam_scans."""
+    mapper = open_n3_mapper(cfg, out_dir, seq)
+    save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
+    return N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, ScanStore(os.path.join(out_dir, SCANS_DIR)))
 
 
 def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper | SubmapMapper:
@@ -305,57 +284,3 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper | SubmapMappe
         raise ConfigError(f"{cfg.n3_config}: submaps.enabled=true: jaxmap slam maps in submaps with "
                           f"n3_loop=submaps (now {cfg.n3_loop}); set submaps.enabled=false or n3_loop=submaps")
     return new_map(MapStart.of(mcfg, *(first_scan or ())), os.path.join(out_dir, "submaps"), first_scan=first_scan)
-
-
-STATE_FILE = "slam_state.pkl"
-SCANS_DIR = "slam_scans"
-
-
-def save_slam(step: N3SlamStep, out_dir: str) -> None:
-    """The run's SLAM checkpoint: the map in out_dir/checkpoint (a new checkpoint `<step>` there, the one
-    before it kept), then the step's state in out_dir/slam_state.pkl, replaced whole once the map is
-    written. The state names the map's checkpoint, so a kill -9 between the two leaves the state before
-    and its map (the scans are in out_dir/slam_scans, written as they came: `ScanStore`)."""
-    from jaxmap.checkpoint import steps
-
-    ckpt = os.path.join(out_dir, "checkpoint")
-    step.settle()   # the frames in flight are in the map and their records in the state
-    step.mapper.save(ckpt)
-    path = os.path.join(out_dir, STATE_FILE)
-    with open(path + ".tmp", "wb") as f:
-        pickle.dump({"frames": len(step.scans), "map_frames": step.mapper.frames, "map_step": steps(ckpt)[0],
-                     "step": step}, f, protocol=pickle.HIGHEST_PROTOCOL)
-    os.replace(path + ".tmp", path)
-
-
-class _StateUnpickler(pickle.Unpickler):
-    """slam_state.pkl's reader: a run saved while this module was `jaxmap.slam.n3slam` still resumes."""
-    MOVED = {"jaxmap.slam.n3slam": __name__, "jaxmap.slam.scan_store": "jaxmap.n3.scan_store"}
-
-    def find_class(self, module, name):
-        return super().find_class(self.MOVED.get(module, module), name)
-
-
-def load_slam(out_dir: str) -> tuple[N3Mapper, N3SlamStep]:
-    """(map, step) of the SLAM checkpoint in out_dir (`save_slam`); CheckpointError naming what is missing
-    or does not match."""
-    path = os.path.join(out_dir, STATE_FILE)
-    if not os.path.isfile(path):
-        raise CheckpointError(f"{path}: missing, so the run cannot be continued (it stopped before its first "
-                              "save, or was killed): start again with --overwrite")
-    with open(path, "rb") as f:
-        saved = _StateUnpickler(f).load()
-    ckpt = os.path.join(out_dir, "checkpoint")
-    if "map_step" in saved:  # the map written with this state (a later one may be there: killed in between)
-        ckpt = os.path.join(ckpt, str(saved["map_step"]))
-        if not os.path.isdir(ckpt):
-            raise CheckpointError(f"{ckpt}: missing, the map saved with {STATE_FILE}; the run cannot be continued: "
-                                  "start again with --overwrite")
-    mapper = load_map(ckpt)
-    step = saved["step"]
-    if step.scans.directory is not None:  # the run directory may have moved since
-        step.scans.directory = os.path.join(out_dir, SCANS_DIR)
-    if mapper.frames != saved["map_frames"]:
-        raise CheckpointError(f"{out_dir}: the map's checkpoint holds {mapper.frames} frames and {STATE_FILE} "
-                              f"{saved['map_frames']}: they are not one save; start again with --overwrite")
-    return mapper, step
