@@ -222,3 +222,62 @@ def test_a_slam_state_saved_before_the_step_moved_to_the_run_layer_still_loads()
     back = slam_step._StateUnpickler(io.BytesIO(old)).load()["step"]
     # and its frames, the step's own then, are its map's now (`FollowingMap`)
     assert type(back) is slam_n3.N3SlamStep and back.map.counter == [3, 4] and back.map.pending == [1]
+
+
+def _counting(monkeypatch, cls, name: str, seen: list, classmethod_: bool = False):
+    """Wrap cls.name so that each call appends its arguments (after self / cls) to `seen`."""
+    real = getattr(cls, name)
+    if classmethod_:
+        monkeypatch.setattr(cls, name, classmethod(lambda c, *a, **k: (seen.append(a), real.__func__(c, *a, **k))[1]))
+    else:
+        monkeypatch.setattr(cls, name, lambda self, *a, **k: (seen.append(a), real(self, *a, **k))[1])
+
+
+@pytest.mark.parametrize("loop", ["moved", "submaps"])
+def test_a_slam_run_sets_its_map_up_from_one_read_and_one_preprocessing_of_frame_0(small_city, tmp_path,
+                                                                                   monkeypatch, loop):
+    """jaxmap slam (map_kind n3) opens its map from frame 0 read once: one `MapStart` (layout and map
+    frame), one preprocessing, whose batch gives the frame program its shapes, and the frame loop is
+    handed that same frame (once: a second load of frame 0 prepares it again). Before, the map compiled
+    from a preprocessing of its own (`first_scan`) and the loop's loader made a second."""
+    from jaxmap.n3 import scan as scan_mod
+    from jaxmap.n3.mapper import N3Mapper
+    from jaxmap.runs.slam_n3 import open_n3_step
+
+    cfg = load_config("configs/city_slam.yaml", [f"data.path={small_city}", "map_kind=n3", f"n3_loop={loop}",
+                                                 "n3_config=city"], schema=SlamConfig)
+    seq = open_sequence(str(small_city))
+    reads, starts, prepares, compiled = [], [], [], []
+    real_frame = seq.frame
+    seq.frame = lambda i: (reads.append(i), real_frame(i))[1]
+    _counting(monkeypatch, scan_mod.MapStart, "of", starts, classmethod_=True)
+    _counting(monkeypatch, scan_mod.MapStart, "prepare", prepares)
+    monkeypatch.setattr(N3Mapper, "_precompile", lambda self, caps, batch: compiled.append(batch.points.shape[0]))
+    step = open_n3_step(cfg, str(tmp_path), seq)
+    first = step.load_frame(seq, 0)
+    assert reads == [0] and len(starts) == 1 and [p[2] for p in prepares] == [0]
+    assert compiled == [scan_mod.bucket_for(len(first.prepared[0]))]
+    again = step.load_frame(seq, 0)
+    assert again is not first and reads == [0, 0] and len(prepares) == 2
+    np.testing.assert_array_equal(again.prepared[0], first.prepared[0])
+
+
+def test_the_first_frame_added_sets_the_map_up_once(small_city, monkeypatch):
+    """N3Mapper.add_frame on an empty map: one `MapStart` at frame 0 (the layout from the raw scan and
+    the map frame at its pose together; before, one for each), none at frame 1; the map frame is placed
+    at the first pose."""
+    from jaxmap.n3 import scan as scan_mod
+    from jaxmap.n3.mapper import N3Mapper
+
+    seq = open_sequence(str(small_city))
+    m = N3Mapper(load_config("configs/city.yaml", ["train.iters=2"]))
+    starts = []
+    _counting(monkeypatch, scan_mod.MapStart, "of", starts, classmethod_=True)
+    monkeypatch.setattr(N3Mapper, "submit", lambda self, batch, **kw: (setattr(self, "frames", self.frames + 1), [])[1])
+    monkeypatch.setattr(N3Mapper, "finish", lambda self: [({"frame": self.frames - 1}, None)])
+    f0, f1 = seq.frame(0), seq.frame(1)
+    m.add_frame(f0.points, f0.pose)
+    assert len(starts) == 1 and starts[0][1] is f0.points
+    np.testing.assert_allclose(m.start.anchor, f0.pose[:3, 3])
+    m.add_frame(f1.points, f1.pose)
+    assert len(starts) == 1

@@ -200,8 +200,8 @@ class N3Mapper:
         the frame is in, its record (`N3Record`) and `kept` ([M] bool: the prepared points that got training
         samples; None with `preprocess.device`)."""
         t0 = time.perf_counter()
-        if self.frames == 0:  # the layout read off the first raw scan (`add_prepared` places the map frame)
-            self.begin(points_s, None)
+        if self.frames == 0 and self._start.anchor is None:  # set up from this frame: layout and map frame at once
+            self.begin(points_s, pose)
         prepared, pose = self._start.prepare(points_s, pose, self.frames)
         return self.add_prepared(prepared, pose, since=t0)
 
@@ -225,7 +225,7 @@ class N3Mapper:
         """(the frame program's batch of a prepared scan at pose [4, 4] in the map's frame, `submit`'s
         keyword arguments but the pose: its points and timings)."""
         t1 = time.perf_counter()
-        if self.frames == 0:  # (again where the map started from a first scan: this frame's pose places it)
+        if self.frames == 0 and self._start.anchor is None:  # a map with no place yet: this frame's pose places it
             self.begin(None, pose)
         self._bucket = scan.bucket_for(len(prepared.points), self._bucket)
         batch = self._start.batch(prepared, pose, self._origin, self._bucket)

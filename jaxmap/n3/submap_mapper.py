@@ -113,8 +113,8 @@ class SubmapMapper:
     def add_frame(self, points_s, pose) -> dict:
         """`N3Mapper.add_frame` into the submap the pose [4, 4] T_world_sensor falls in."""
         t0 = time.perf_counter()
-        if self.frames == 0:  # the layout read off the first raw scan (the pose places the first submap)
-            self._begin(points_s, None)
+        if not self._subs.infos:  # set up from this frame: the layout, and the first submap at its pose
+            self._begin(points_s, pose)
         prepared, pose = self.start.prepare(points_s, pose, self.frames)
         return self.add_prepared(prepared, pose, since=t0)
 

@@ -43,9 +43,8 @@ from jaxmap.config import SlamConfig, save_config
 from jaxmap.config.slam import OdometryConfig
 from jaxmap.finish import finish_run
 from jaxmap.frame_loop import Checkpoints, Frame, Prefetcher, Progress, open_run_sequence, open_viewer, run_frames
-from jaxmap.imt.mapper import ImtMapper
 from jaxmap.n3.core import PROGRAMS
-from jaxmap.runs.slam_imt import ImtSlamStep, SnapshotStep, read_snapshots
+from jaxmap.runs.slam_imt import open_imt_step
 from jaxmap.runs.slam_n3 import n3_map_config, open_n3_step
 from jaxmap.runs.slam_step import CHECKPOINT_DIR, SlamStep, load_slam, save_slam
 from jaxmap.slam.odometry import make_odometry
@@ -57,15 +56,7 @@ log = logging.getLogger("jaxmap")
 def open_step(cfg: SlamConfig, out_dir: str, seq) -> SlamStep:
     """A new run's step and its map, by map kind: the N3 map (`jaxmap.runs.slam_n3`), or the latent map
     driven by the front end or by pose snapshots (`jaxmap.runs.slam_imt`)."""
-    if cfg.map_kind == "n3":
-        return open_n3_step(cfg, out_dir, seq)
-    mapper = ImtMapper(cfg.imt())
-    if cfg.external_poses:
-        step = SnapshotStep(cfg, read_snapshots(cfg.external_poses, len(seq)))
-    else:
-        step = ImtSlamStep(cfg, np.asarray(seq.poses[0], np.float64))
-    step.mapper = mapper
-    return step
+    return open_n3_step(cfg, out_dir, seq) if cfg.map_kind == "n3" else open_imt_step(cfg, seq)
 
 
 def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: bool = True,

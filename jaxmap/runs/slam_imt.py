@@ -25,6 +25,7 @@ import numpy as np
 
 from jaxmap.errors import DataError
 from jaxmap.frame_loop import Frame
+from jaxmap.imt.mapper import ImtMapper
 from jaxmap.runs.slam_step import SlamFrame, SlamStep, show_loop
 from jaxmap.slam.frontend import FrontEnd
 from jaxmap.slam.odometry_common import Scan
@@ -94,6 +95,16 @@ class ImtSlamStep(SlamStep):
     @staticmethod
     def progress(record: dict) -> dict:
         return {"kf": record["kf"], "loops": record["loops"], "ok": record["ok"]}
+
+
+def open_imt_step(cfg, seq) -> SlamStep:
+    """A new run's step and its latent map: the front end's, or with `external_poses` the snapshots'."""
+    if cfg.external_poses:
+        step = SnapshotStep(cfg, read_snapshots(cfg.external_poses, len(seq)))
+    else:
+        step = ImtSlamStep(cfg, np.asarray(seq.poses[0], np.float64))
+    step.mapper = ImtMapper(cfg.imt())
+    return step
 
 
 def snapshot_files(directory: str) -> list[str]:

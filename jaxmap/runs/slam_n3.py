@@ -42,7 +42,7 @@ from jaxmap.n3.following import FollowingMap, FollowRule
 from jaxmap.n3.mapper import N3Mapper
 from jaxmap.n3.scan import MapStart, PreparedScan
 from jaxmap.n3.scan_store import ScanStore
-from jaxmap.n3.submap_mapper import SubmapMapper, new_map
+from jaxmap.n3.submap_mapper import new_map
 from jaxmap.records import medians
 from jaxmap.runs.slam_step import SlamFrame, SlamStep, show_loop
 from jaxmap.slam.frontend import FrontEnd
@@ -62,11 +62,11 @@ def n3_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
                                        f"data.every_frame={d.every_frame}", f"output={out_dir}"], schema=MapConfig)
 
 
-def prepare_slam_frame(cfg: SlamConfig, start: MapStart, seq, i: int) -> SlamFrame:
-    """`Prefetcher` loader: the frame as read, its points and normals (and range image) made ready for the
-    N3 map (`start.prepare`, before the pose is known), and the odometry's scan, each made once, off the
-    main thread."""
-    fr = seq.frame(i)
+def prepare_slam_frame(cfg: SlamConfig, start: MapStart, seq, i: int, fr=None) -> SlamFrame:
+    """`Prefetcher` loader: the frame as read (fr: `seq.frame(i)` read already), its points and normals (and
+    range image) made ready for the N3 map (`start.prepare`, before the pose is known), and the odometry's
+    scan, each made once, off the main thread."""
+    fr = seq.frame(i) if fr is None else fr
     ready, _ = start.prepare(fr.points, np.eye(4), i)
     raw = scan.clean_points(fr.points, i)
     return SlamFrame(i, int(fr.index), raw, fr.pose, image=ready.image, prepared=(ready.points, ready.normals),
@@ -111,11 +111,15 @@ class N3SlamStep(SlamStep):
 
     map_kind = "n3"
     label = "slam (n3)"
-    _run_only = (*SlamStep._run_only, "last")   # (`last`: a state saved before `total` replaced it)
+    _run_only = (*SlamStep._run_only, "last", "_first")   # (`last`: a state saved before `total` replaced it)
 
-    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, scans: ScanStore | None = None):
+    def __init__(self, cfg: SlamConfig, initial_pose: np.ndarray, mapper: N3Mapper, scans: ScanStore | None = None,
+                 first: SlamFrame | None = None):
+        """first: frame 0 made ready already (`open_n3_step`: the map compiled its program from it), handed to
+        the frame loop by `load_frame` instead of read and prepared again."""
         super().__init__(cfg, FrontEnd(cfg.frontend, initial_pose=initial_pose))
         self.map = FollowingMap(mapper, FollowRule.of(cfg), scans)   # the map and its frames (step 4)
+        self._first = first
         self.tracks: list[dict] = []             # per frame: what tracking said (ok, valid_fraction, rms_m, ...)
         self._waiting: dict = {}                 # map frame number -> (frame, record, pose): in flight
         self._finished: list = []                # (frame, record, pose) finished, not yet returned to the loop
@@ -239,6 +243,10 @@ class N3SlamStep(SlamStep):
         return {"frame": frame_index, **record}
 
     def load_frame(self, seq, i: int) -> SlamFrame:
+        first = getattr(self, "_first", None)
+        if first is not None and first.position == i:  # (handed over once; another thread's frame leaves it)
+            self._first = None
+            return first
         return prepare_slam_frame(self.cfg, self.mapper.start, seq, i)
 
     def summary(self, res: dict) -> dict:
@@ -256,24 +264,36 @@ class N3SlamStep(SlamStep):
 
 
 def open_n3_step(cfg: SlamConfig, out_dir: str, seq) -> N3SlamStep:
-    """A new run's step and map (`open_n3_mapper`; the map's resolved config saved as out_dir/n3_config.yaml),
-    its scans kept in out_dir/slam_scans."""
-    mapper = open_n3_mapper(cfg, out_dir, seq)
+    """A new run's step and its N3 map: one grid, or with `n3_loop: submaps` a `SubmapMapper` (submaps of
+    n3_submap_m, each pass its own, in out_dir/submaps); the map's resolved config saved as
+    out_dir/n3_config.yaml, the scans kept in out_dir/slam_scans. Frame 0 is read and made ready once: the
+    map's start (range-image layout, map frame at the first pose) and its frame program come from it, and
+    the step hands it to the frame loop."""
+    mcfg = slam_map_config(cfg, out_dir)
+    pose0 = np.asarray(seq.poses[0], np.float64) if len(seq) else np.eye(4)
+    first = first_batch = None
+    if not len(seq):
+        start = MapStart.of(mcfg)
+    else:
+        fr = seq.frame(0)
+        start = MapStart.of(mcfg, fr.points, fr.pose)
+        first = prepare_slam_frame(cfg, start, seq, 0, fr)
+        ready = PreparedScan(*first.prepared, first.image)
+        first_batch = start.batch(ready, pose0, start.origin, scan.bucket_for(len(ready.points)))
+    mapper = new_map(start, os.path.join(out_dir, "submaps"), first_batch=first_batch)
     save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
-    return N3SlamStep(cfg, np.asarray(seq.poses[0], np.float64), mapper, ScanStore(os.path.join(out_dir, SCANS_DIR)))
+    return N3SlamStep(cfg, pose0, mapper, ScanStore(os.path.join(out_dir, SCANS_DIR)), first)
 
 
-def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper | SubmapMapper:
-    """The run's N3 map (config in out_dir/n3_config.yaml's place: the caller saves it): one grid, or with
-    `n3_loop: submaps` a `SubmapMapper` (submaps of n3_submap_m, each pass its own, in out_dir/submaps)."""
+def slam_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
+    """The N3 map's config in a SLAM run (`n3_map_config`, checked): preprocessed on the host (the tracker
+    reads the map's preprocessed points), in submaps with `n3_loop: submaps`."""
     mcfg = n3_map_config(cfg, out_dir)
     if mcfg.preprocess.device == "true":
         raise JaxmapError(f"{cfg.n3_config}: preprocess.device=true is not supported by jaxmap slam; set it to false "
                           "or auto")
     # the tracker reads the map's preprocessed points on the host: auto is the host here
     mcfg = dataclasses.replace(mcfg, preprocess=dataclasses.replace(mcfg.preprocess, device="false"))
-    first = seq.frame(0) if len(seq) else None
-    first_scan = (first.points, first.pose) if first is not None else None
     if cfg.n3_loop == "submaps":
         # two resident: a new submap's first frames are tracked against the one left (not read back from disk)
         sub = dataclasses.replace(mcfg.submaps, enabled=True, length_m=cfg.n3_submap_m, revisit=False,
@@ -283,4 +303,4 @@ def open_n3_mapper(cfg: SlamConfig, out_dir: str, seq) -> N3Mapper | SubmapMappe
     elif mcfg.submaps.enabled:
         raise ConfigError(f"{cfg.n3_config}: submaps.enabled=true: jaxmap slam maps in submaps with "
                           f"n3_loop=submaps (now {cfg.n3_loop}); set submaps.enabled=false or n3_loop=submaps")
-    return new_map(MapStart.of(mcfg, *(first_scan or ())), os.path.join(out_dir, "submaps"), first_scan=first_scan)
+    return mcfg
