@@ -17,7 +17,7 @@ Every `checkpoint_every` frames, on Ctrl-C or SIGTERM (between two frames) and a
 saved, the map in checkpoint/ and then the step's state in slam_state.pkl (`save_slam`);
 `jaxmap slam --resume RUN` goes on from there (`load_slam`) with the trajectory and map the run would
 have made without the stop, also after kill -9 (from the last save). A frame that fails saves the map
-mapped before it and names the frame.
+as mapped so far and names the frame.
 
 A run directory holds config.yaml, checkpoint/ (the map: `ImtMapper.load`, or `load_map` for N3),
 slam_state.pkl, mesh.ply, trajectory_kitti.txt and trajectory_tum.txt (every frame, and

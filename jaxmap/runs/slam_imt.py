@@ -153,9 +153,13 @@ class SnapshotStep(SlamStep):
     def frames_done(self) -> int:
         return self.fused
 
-    def frames_to_run(self, seq) -> int:
+    @property
+    def frames_held(self) -> int:
         """The frames the snapshots hold: the run's frames."""
         return len(self.snapshots[-1][1]) if self.snapshots else 0
+
+    def frames_to_run(self, seq) -> int:
+        return self.frames_held
 
     def _apply(self, n: int) -> None:
         """Remap to snapshot n's poses of the frames fused so far."""
@@ -179,7 +183,7 @@ class SnapshotStep(SlamStep):
 
     def drain(self) -> list:
         """Once every frame is fused (not when a stop drains the loop early): the snapshots left."""
-        if self.fused >= self.frames_to_run(None):
+        if self.fused >= self.frames_held:
             while self.applied < len(self.snapshots):
                 self._apply(self.applied)
         return []

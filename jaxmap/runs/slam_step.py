@@ -111,8 +111,9 @@ class SlamStep:
         return r
 
     def _failed(self, frame: int, err: Exception) -> JaxmapError:
-        """Save the map of the frames before `frame` (when the run has a directory) and return the error
-        that names the frame, what was saved and how to go on."""
+        """Save the map as mapped so far (when the run has a directory; a save of its own, not one that
+        `--resume` reads: the step's state may be mid-frame) and return the error that names the frame,
+        what was saved and how to go on."""
         log.error("jaxmap slam: frame %d failed", frame, exc_info=err)
         msg = f"jaxmap slam failed at frame {frame}: {type(err).__name__}: {err}"
         if self.out_dir is None:
@@ -121,7 +122,7 @@ class SlamStep:
         try:
             self.settle()
             self.mapper.save(path)
-            saved = f"the map of the {self.mapped()} before it is saved in {path}"
+            saved = f"the map as mapped so far ({self.mapped()}) is saved in {path}"
         except Exception as e2:  # noqa: BLE001 - the first error is the one to report
             saved = f"saving a checkpoint failed too ({type(e2).__name__}: {e2})"
         if os.path.isfile(os.path.join(self.out_dir, STATE_FILE)):
