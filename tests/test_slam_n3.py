@@ -253,7 +253,7 @@ def test_a_slam_run_sets_its_map_up_from_one_read_and_one_preprocessing_of_frame
     _counting(monkeypatch, scan_mod.MapStart, "of", starts, classmethod_=True)
     _counting(monkeypatch, scan_mod.MapStart, "prepare", prepares)
     monkeypatch.setattr(N3Mapper, "_precompile", lambda self, caps, batch: compiled.append(batch.points.shape[0]))
-    step = open_n3_step(cfg, str(tmp_path), seq)
+    _, step = open_n3_step(cfg, str(tmp_path), seq)
     first = step.load_frame(seq, 0)
     assert reads == [0] and len(starts) == 1 and [p[2] for p in prepares] == [0]
     assert compiled == [scan_mod.bucket_for(len(first.prepared[0]))]

@@ -107,8 +107,7 @@ class N3Mapper:
         if state is None:
             caps = core.capacities_for(self.static, self.cfg)
             if first_batch is None and first_scan is not None:
-                first, pose = self._start.prepare(*first_scan, 0)
-                first_batch = self._start.batch(first, pose, self._start.origin, scan.bucket_for(len(first.points)))
+                first_batch = self._start.first_batch(*self._start.prepare(*first_scan, 0))
             if first_batch is not None:
                 self._precompile(caps, first_batch)
             state = empty_state(self.static, self.cfg, caps)

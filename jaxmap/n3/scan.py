@@ -199,6 +199,11 @@ class MapStart:
             image = empty_image(self.static.image)
         return batch_of(scan.points, scan.normals, image, pose, origin_w, bucket, self.device)
 
+    def first_batch(self, scan: PreparedScan, pose):
+        """The batch of the map's first frame, a prepared scan at pose [4, 4] (the start's own, placed: the
+        map frame is known), in its own bucket: what the frame program compiles from."""
+        return self.batch(scan, pose, self.origin, bucket_for(len(scan.points)))
+
     def uploader(self, bucket: int = 0) -> "Uploader":
         """The frame loop's last reading stage for this map (`Uploader`), at its origin (the world's before
         a first pose is known); with submaps.enabled it routes the frames to their submaps (`routing.Route`)."""

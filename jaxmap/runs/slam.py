@@ -53,8 +53,8 @@ from jaxmap.slam.trajectory import ate, axis_errors, write_kitti, write_trajecto
 log = logging.getLogger("jaxmap")
 
 
-def open_step(cfg: SlamConfig, out_dir: str, seq) -> SlamStep:
-    """A new run's step and its map, by map kind: the N3 map (`jaxmap.runs.slam_n3`), or the latent map
+def open_step(cfg: SlamConfig, out_dir: str, seq) -> tuple[object, SlamStep]:
+    """A new run's (map, step), by map kind: the N3 map (`jaxmap.runs.slam_n3`), or the latent map
     driven by the front end or by pose snapshots (`jaxmap.runs.slam_imt`)."""
     return open_n3_step(cfg, out_dir, seq) if cfg.map_kind == "n3" else open_imt_step(cfg, seq)
 
@@ -77,8 +77,7 @@ def run_slam(cfg: SlamConfig, out_dir: str, progress: bool = True, evaluate: boo
         mapper, step = load_slam(out_dir)
         log.info("resuming %s at frame %d of %d", out_dir, step.frames_done, len(seq))
     else:
-        step = open_step(cfg, out_dir, seq)
-        mapper = step.mapper
+        mapper, step = open_step(cfg, out_dir, seq)
     viewer = open_viewer(view, mapper)
     total = step.frames_to_run(seq)
     step.attach(mapper, viewer=viewer, out_dir=out_dir, total=total, track=track)

@@ -34,11 +34,22 @@ from jaxmap.slam.trajectory import read_pose_snapshot
 log = logging.getLogger("jaxmap")
 
 
-class ImtSlamStep(SlamStep):
+class LatentMapStep(SlamStep):
+    """What the latent map's steps share: its keyframes are the frames it holds."""
+
+    map_kind = "imt"
+
+    def keyframe_frames(self, seq) -> list[int]:
+        return [int(f) for f in self.mapper.store.frames]
+
+    def mapped(self) -> str:
+        return f"{len(self.mapper.store)} keyframes"
+
+
+class ImtSlamStep(LatentMapStep):
     """The front end estimates each frame's pose; a keyframe is fused into the latent map at it; an
     accepted loop remaps the map to the optimised keyframe poses (see the module docstring)."""
 
-    map_kind = "imt"
     label = "slam"
 
     def __init__(self, cfg, initial_pose: np.ndarray):
@@ -86,25 +97,18 @@ class ImtSlamStep(SlamStep):
         return SlamFrame(i, int(fr.index), fr.points, fr.pose, prepared=self.mapper.prepare(fr.points) if every else None,
                          odometry_scan=Scan(fr.points, fe.odometry))
 
-    def keyframe_frames(self, seq) -> list[int]:
-        return [int(f) for f in self.mapper.store.frames]
-
-    def mapped(self) -> str:
-        return f"{len(self.mapper.store)} keyframes"
-
     @staticmethod
     def progress(record: dict) -> dict:
         return {"kf": record["kf"], "loops": record["loops"], "ok": record["ok"]}
 
 
-def open_imt_step(cfg, seq) -> SlamStep:
-    """A new run's step and its latent map: the front end's, or with `external_poses` the snapshots'."""
+def open_imt_step(cfg, seq) -> tuple[ImtMapper, SlamStep]:
+    """A new run's (latent map, step): the front end's step, or with `external_poses` the snapshots'."""
     if cfg.external_poses:
         step = SnapshotStep(cfg, read_snapshots(cfg.external_poses, len(seq)))
     else:
         step = ImtSlamStep(cfg, np.asarray(seq.poses[0], np.float64))
-    step.mapper = ImtMapper(cfg.imt())
-    return step
+    return ImtMapper(cfg.imt()), step
 
 
 def snapshot_files(directory: str) -> list[str]:
@@ -134,13 +138,12 @@ def read_snapshots(directory: str, frames: int) -> list[tuple[str, np.ndarray]]:
     return out
 
 
-class SnapshotStep(SlamStep):
+class SnapshotStep(LatentMapStep):
     """Another SLAM system's pose snapshots drive the map: before the first frame that snapshot i adds,
     the map is remapped to snapshot i's poses (and to those of the snapshots before it that added no
     frame); the frame is fused at its snapshot pose. Once the last frame is in, the snapshots left (those
     that add no frame) are applied. `loops` holds one record per snapshot applied."""
 
-    map_kind = "imt"
     label = "slam (external poses)"
 
     def __init__(self, cfg, snapshots: list[tuple[str, np.ndarray]]):
@@ -194,13 +197,7 @@ class SnapshotStep(SlamStep):
         fr = seq.frame(i)
         return SlamFrame(i, int(fr.index), fr.points, fr.pose, prepared=self.mapper.prepare(fr.points))
 
-    def keyframe_frames(self, seq) -> list[int]:
-        return [int(f) for f in self.mapper.store.frames]
-
     def results(self, seq) -> dict:
         poses = self.snapshots[-1][1] if self.snapshots else np.zeros((0, 4, 4))
         return {"trajectory": poses, "odometry": None, "loops": self.loops,
                 "keyframe_frames": self.keyframe_frames(seq)}
-
-    def mapped(self) -> str:
-        return f"{len(self.mapper.store)} keyframes"

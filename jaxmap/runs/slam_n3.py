@@ -159,6 +159,7 @@ class N3SlamStep(SlamStep):
             state.pop(k, None)
         super().__setstate__(state)
         self._waiting, self._finished = {}, []   # (a save settles the frames in flight first: `save_slam`)
+        self._first = None
 
     def attach(self, mapper, *, viewer=None, out_dir: str | None = None, total: int = 0, track=None) -> None:
         """`SlamStep.attach`; track None: `default_tracker` when `n3_track` is on."""
@@ -243,7 +244,7 @@ class N3SlamStep(SlamStep):
         return {"frame": frame_index, **record}
 
     def load_frame(self, seq, i: int) -> SlamFrame:
-        first = getattr(self, "_first", None)
+        first = self._first
         if first is not None and first.position == i:  # (handed over once; another thread's frame leaves it)
             self._first = None
             return first
@@ -263,8 +264,8 @@ class N3SlamStep(SlamStep):
         return PROGRAMS.compiles_since(n)
 
 
-def open_n3_step(cfg: SlamConfig, out_dir: str, seq) -> N3SlamStep:
-    """A new run's step and its N3 map: one grid, or with `n3_loop: submaps` a `SubmapMapper` (submaps of
+def open_n3_step(cfg: SlamConfig, out_dir: str, seq) -> tuple[N3Mapper, N3SlamStep]:
+    """A new run's (map, step), the map an N3 map: one grid, or with `n3_loop: submaps` a `SubmapMapper` (submaps of
     n3_submap_m, each pass its own, in out_dir/submaps); the map's resolved config saved as
     out_dir/n3_config.yaml, the scans kept in out_dir/slam_scans. Frame 0 is read and made ready once: the
     map's start (range-image layout, map frame at the first pose) and its frame program come from it, and
@@ -278,11 +279,10 @@ def open_n3_step(cfg: SlamConfig, out_dir: str, seq) -> N3SlamStep:
         fr = seq.frame(0)
         start = MapStart.of(mcfg, fr.points, fr.pose)
         first = prepare_slam_frame(cfg, start, seq, 0, fr)
-        ready = PreparedScan(*first.prepared, first.image)
-        first_batch = start.batch(ready, pose0, start.origin, scan.bucket_for(len(ready.points)))
+        first_batch = start.first_batch(PreparedScan(*first.prepared, first.image), pose0)
     mapper = new_map(start, os.path.join(out_dir, "submaps"), first_batch=first_batch)
     save_config(mapper.cfg, os.path.join(out_dir, "n3_config.yaml"))
-    return N3SlamStep(cfg, pose0, mapper, ScanStore(os.path.join(out_dir, SCANS_DIR)), first)
+    return mapper, N3SlamStep(cfg, pose0, mapper, ScanStore(os.path.join(out_dir, SCANS_DIR)), first)
 
 
 def slam_map_config(cfg: SlamConfig, out_dir: str) -> MapConfig:
